@@ -1,0 +1,233 @@
+"""The exploration loop, written once: odometry and scans in, a position + yaw setpoint out.
+
+The in-process simulator, the MAVLink link and the Zenoh link all drive this same object. It owns
+the local-polygon map and the planner, decides when a scan becomes a keyframe, keeps the vehicle
+localised against one keyframe (the *current* keyframe, whose pose in the odometry frame is the
+*anchor*), and turns loop closures reported by a SLAM back end into pose-graph edges.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass, field
+
+from companion.core.errors import CoreError
+from companion.core.fov_polygon import PolygonParams, scan_to_polygon
+from companion.core.geometry import Pose2, wrap_angle
+from companion.core.local_map import LocalMap, MapParams
+from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
+from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
+
+
+@dataclass(frozen=True, slots=True)
+class ExplorerParams:
+    polygon: PolygonParams = field(default_factory=PolygonParams)
+    map: MapParams = field(default_factory=MapParams)
+    planner: PlannerParams = field(default_factory=PlannerParams)
+    keyframe_distance_m: float = 1.0
+    keyframe_angle_rad: float = 0.5
+    backtrack_keyframe_distance_m: float = 3.0  # fewer new views while flying through known space
+    loop_closure_max_gap_s: float = 5.0  # a loop closure needs a keyframe this close in time
+
+
+@dataclass(frozen=True, slots=True)
+class StepResult:
+    setpoint: Setpoint
+    mode: Mode
+    keyframe_added: bool
+    decision: Decision
+
+
+class OdometryHistory:
+    """Odometry samples by stamp, to find the estimate at a scan's or a loop closure's stamp."""
+
+    def __init__(self) -> None:
+        self._stamps: list[float] = []
+        self._poses: list[Pose2] = []
+
+    def append(self, odom: Odometry) -> None:
+        if self._stamps and odom.stamp_s <= self._stamps[-1]:
+            if odom.stamp_s == self._stamps[-1]:
+                self._poses[-1] = odom.pose
+            return
+        self._stamps.append(odom.stamp_s)
+        self._poses.append(odom.pose)
+
+    def at(self, stamp_s: float) -> Pose2 | None:
+        """Linear interpolation between neighbouring samples; None outside the history."""
+        if (
+            not self._stamps
+            or stamp_s < self._stamps[0] - 1e-6
+            or stamp_s > self._stamps[-1] + 1e-6
+        ):
+            return None
+        i = bisect.bisect_left(self._stamps, stamp_s)
+        if i < len(self._stamps) and abs(self._stamps[i] - stamp_s) < 1e-9:
+            return self._poses[i]
+        if i == 0:
+            return self._poses[0]
+        if i >= len(self._stamps):
+            return self._poses[-1]
+        t0, t1 = self._stamps[i - 1], self._stamps[i]
+        a, b = self._poses[i - 1], self._poses[i]
+        w = (stamp_s - t0) / (t1 - t0)
+        return Pose2(
+            a.x_m + w * (b.x_m - a.x_m),
+            a.y_m + w * (b.y_m - a.y_m),
+            wrap_angle(a.yaw_rad + w * wrap_angle(b.yaw_rad - a.yaw_rad)),
+        )
+
+    def newest_stamp(self) -> float | None:
+        return self._stamps[-1] if self._stamps else None
+
+    def shift(self, correction: Pose2) -> None:
+        """Re-express the history after an estimator reset (``new = correction ∘ old``)."""
+        self._poses = [correction.compose(p) for p in self._poses]
+
+
+class Explorer:
+    """Map + planner behind one call: :meth:`step`."""
+
+    def __init__(self, params: ExplorerParams | None = None) -> None:
+        self.params = params or ExplorerParams()
+        self.map = LocalMap(self.params.map)
+        self.planner = FrontierPlanner(self.params.planner)
+        self.current_id: int | None = None
+        self.anchor = Pose2.identity()  # current keyframe's pose in the odometry frame
+        self.history = OdometryHistory()
+        self.loop_closures_rejected = 0
+        self._want_keyframe = False
+        self._last_odom: Odometry | None = None
+        self._last_mode = Mode.EXPLORING
+        self._pending_closures: list[LoopClosure] = []
+
+    @property
+    def mode(self) -> Mode:
+        return self._last_mode
+
+    def step(self, odom: Odometry, scan: DepthScan | None = None) -> StepResult:
+        """Take the newest odometry (and a scan, if one arrived) and return the next setpoint."""
+        if not (odom.pose.is_finite() and math.isfinite(odom.stamp_s)):
+            raise CoreError("odometry must be finite")
+        self._handle_reset(odom)
+        self.history.append(odom)
+        self._last_odom = odom
+        if self._pending_closures:
+            self._apply_pending_closures()
+        added = False
+        if scan is not None:
+            added = self._maybe_add_keyframe(scan, odom)
+        if self.current_id is None:
+            hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
+            decision = Decision(Mode.EXPLORING, Target(hold.x_m, hold.y_m, hold.yaw_rad))
+            return StepResult(hold, Mode.EXPLORING, added, decision)
+        vehicle = self.anchor.between(odom.pose)
+        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s)
+        if decision.relocalize_to is not None and decision.relocalize_to != self.current_id:
+            rel = self.map.pose_in(self.current_id, decision.relocalize_to)
+            self.anchor = self.anchor.compose(rel)
+            self.current_id = decision.relocalize_to
+        if decision.want_keyframe:
+            self._want_keyframe = True
+        t = decision.target
+        if decision.relocalize_to is not None:
+            # The target is the reached keyframe's own origin: the new anchor.
+            sp = Setpoint(self.anchor.x_m, self.anchor.y_m, self.anchor.yaw_rad)
+        else:
+            x, y = self.anchor.apply_point(t.x_m, t.y_m)
+            sp = Setpoint(x, y, wrap_angle(t.yaw_rad + self.anchor.yaw_rad))
+        self._last_mode = decision.mode
+        return StepResult(sp, decision.mode, added, decision)
+
+    def add_loop_closure(self, closure: LoopClosure) -> None:
+        """Queue a SLAM loop closure; it joins the graph once odometry covers both its moments."""
+        self._pending_closures.append(closure)
+        self._apply_pending_closures()
+
+    def _apply_pending_closures(self) -> None:
+        newest = self.history.newest_stamp()
+        keep: list[LoopClosure] = []
+        for closure in self._pending_closures:
+            if newest is not None and closure.current_stamp_s <= newest + 1e-6:
+                self._apply_loop_closure(closure)
+            elif newest is None or closure.current_stamp_s - newest < self.params.loop_closure_max_gap_s:
+                keep.append(closure)
+            else:
+                self.loop_closures_rejected += 1
+        self._pending_closures = keep
+
+    def _apply_loop_closure(self, closure: LoopClosure) -> bool:
+        """Turn a loop closure into a pose-graph edge between the keyframes nearest in time.
+
+        Returns False (and counts it) when no keyframe is close enough in time to either moment
+        or the odometry at those moments is not known.
+        """
+        gap = self.params.loop_closure_max_gap_s
+        a = self._keyframe_near(closure.earlier_stamp_s, gap)
+        b = self._keyframe_near(closure.current_stamp_s, gap)
+        pe = self.history.at(closure.earlier_stamp_s)
+        pc = self.history.at(closure.current_stamp_s)
+        if (
+            a is None
+            or b is None
+            or a == b
+            or pe is None
+            or pc is None
+            or not closure.earlier_to_current.is_finite()
+        ):
+            self.loop_closures_rejected += 1
+            return False
+        ka, kb = self.map.keyframes[a], self.map.keyframes[b]
+        a_to_b = (
+            ka.odom_pose.between(pe)
+            .compose(closure.earlier_to_current)
+            .compose(pc.between(kb.odom_pose))
+        )
+        if a > b:
+            a, b, a_to_b = b, a, a_to_b.inverse()
+        self.map.add_loop_closure(a, b, a_to_b)
+        return True
+
+    # -- internals -------------------------------------------------------------------------------
+
+    def _handle_reset(self, odom: Odometry) -> None:
+        last = self._last_odom
+        if last is None or odom.reset_counter == last.reset_counter:
+            return
+        # The estimator jumped; assume no motion across the jump and carry the anchor over.
+        correction = odom.pose.compose(last.pose.inverse())
+        self.anchor = correction.compose(self.anchor)
+        self.history.shift(correction)
+
+    def _keyframe_near(self, stamp_s: float, gap_s: float) -> int | None:
+        best, best_gap = None, gap_s
+        for k, kf in self.map.keyframes.items():
+            d = abs(kf.stamp_s - stamp_s)
+            if d <= best_gap:
+                best, best_gap = k, d
+        return best
+
+    def _maybe_add_keyframe(self, scan: DepthScan, odom: Odometry) -> bool:
+        pose = self.history.at(scan.stamp_s) or odom.pose
+        p = self.params
+        if self.current_id is not None:
+            rel = self.anchor.between(pose)
+            dist = math.hypot(rel.x_m, rel.y_m)
+            turn = abs(rel.yaw_rad)
+            backtracking = self._last_mode is Mode.BACKTRACKING
+            limit = p.backtrack_keyframe_distance_m if backtracking else p.keyframe_distance_m
+            due = dist >= limit or (not backtracking and turn >= p.keyframe_angle_rad)
+            if self._want_keyframe and (dist > 0.2 or turn > 0.15):
+                due = True
+            if not due:
+                return False
+        polygon = scan_to_polygon(scan, p.polygon)
+        if polygon.shape.is_empty:
+            return False
+        parent = None if self.current_id is None else (self.current_id, self.anchor.between(pose))
+        kf = self.map.add_keyframe(scan.stamp_s, pose, polygon, parent)
+        self.current_id = kf.keyframe_id
+        self.anchor = pose
+        self._want_keyframe = False
+        return True

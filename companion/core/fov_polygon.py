@@ -1,0 +1,226 @@
+"""Scan to field-of-view polygon (thesis 2.4): the free space one depth scan saw, in its own frame.
+
+The sensor origin is the first vertex (for scans narrower than a full turn); the returns follow in
+bearing order. Returns at max range (or with no return) are frontier vertices, others obstacle
+vertices. An occlusion (a jump in range between neighbouring rays) inserts a frontier vertex so the
+shadow behind the nearer object stays unknown instead of being claimed as free.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+
+from companion.core.geometry import FloatArray
+from companion.core.messages import DepthScan
+
+
+class VertexKind(IntEnum):
+    """Type of a polygon vertex (thesis eq. 2.2 and 2.15)."""
+
+    OBSTACLE = 0
+    FRONTIER = 1
+    FREE = 2
+
+
+class EdgeKind(IntEnum):
+    """Type of the edge from vertex i to i+1 (thesis eq. 2.3, plus the FOV's side edges)."""
+
+    OBSTACLE = 0
+    FRONTIER = 1
+    SIDE = 2  # an edge at the sensor origin: the FOV's side, beyond which nothing was seen
+
+
+@dataclass(frozen=True, slots=True)
+class PolygonParams:
+    """Tuning for :func:`scan_to_polygon`."""
+
+    occlusion_threshold_m: float = 0.5
+    min_vertex_spacing_m: float = 0.25
+    frontier_range_tolerance_m: float = 0.02
+    # The FOV's two side edges border space nothing has seen; frontier vertices placed along them
+    # at this spacing let the planner look there too (0 disables them).
+    side_frontier_spacing_m: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class FovPolygon:
+    """One scan's free space in the keyframe frame.
+
+    ``vertices_xy`` is (N, 2) in counter-clockwise order, ``kinds`` the initial ``VertexKind`` of
+    each vertex, ``outward_xy`` a unit outward normal per vertex (used to ask whether the space just
+    beyond a frontier was seen by another view), ``has_origin`` whether vertex 0 is the sensor.
+    """
+
+    vertices_xy: FloatArray
+    kinds: NDArray[np.int8]
+    outward_xy: FloatArray
+    has_origin: bool
+    shape: shapely.Polygon
+
+    @property
+    def size(self) -> int:
+        return int(self.vertices_xy.shape[0])
+
+    def edge_kinds(self, kinds: NDArray[np.int8] | None = None) -> NDArray[np.int8]:
+        """Edge i joins vertex i to i+1 (cyclic), typed from the vertex kinds given (or initial)."""
+        k = self.kinds if kinds is None else kinds
+        nxt = np.roll(k, -1)
+        out = np.full(k.shape, EdgeKind.OBSTACLE, dtype=np.int8)
+        out[(k == VertexKind.FRONTIER) | (nxt == VertexKind.FRONTIER)] = EdgeKind.FRONTIER
+        if self.has_origin:
+            out[0] = EdgeKind.SIDE if k[1] != VertexKind.FRONTIER else EdgeKind.FRONTIER
+            out[-1] = EdgeKind.SIDE if k[-1] != VertexKind.FRONTIER else EdgeKind.FRONTIER
+        return out
+
+    def obstacle_segments(self) -> FloatArray:
+        """(M, 2, 2) array of obstacle edges (both ends observed obstacle returns)."""
+        k = self.kinds
+        nxt = np.roll(k, -1)
+        mask = (k == VertexKind.OBSTACLE) & (nxt == VertexKind.OBSTACLE)
+        if self.has_origin:
+            mask[0] = False
+            mask[-1] = False
+        idx = np.flatnonzero(mask)
+        nxt_idx = (idx + 1) % self.size
+        return np.stack((self.vertices_xy[idx], self.vertices_xy[nxt_idx]), axis=1)
+
+
+def _classify_ranges(scan: DepthScan, tol_m: float) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Effective ranges and frontier flags per ray, following the scan's range conventions."""
+    r = scan.ranges_m
+    with np.errstate(invalid="ignore"):
+        no_return = np.isposinf(r) | (r >= scan.max_range_m - tol_m)
+        too_close = np.isneginf(r)
+        invalid = np.isnan(r) | (np.isfinite(r) & (r < scan.min_range_m))
+    ranges = np.where(np.isfinite(r), r, 0.0)
+    ranges = np.where(no_return, scan.max_range_m, ranges)
+    # Too close: an obstacle right in front; invalid: nothing known along the ray. Either way the
+    # polygon is pinched to the minimum range, never claiming free space that was not seen.
+    ranges = np.where(too_close | invalid, max(scan.min_range_m, 1e-3), ranges)
+    frontier = no_return | invalid
+    return ranges.astype(np.float64), frontier
+
+
+def _insert_occlusions(
+    bearings: FloatArray, ranges: FloatArray, frontier: NDArray[np.bool_], threshold_m: float
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Insert a frontier vertex at each range jump (thesis eq. 2.4).
+
+    The vertex sits at the nearer range on the farther ray, so the polygon edge from it runs along
+    the farther ray (observed free) and the occluded wedge behind the nearer return stays outside.
+    """
+    ranges = ranges.copy()
+    frontier = frontier.copy()
+    # A jump at either end ray would leave a zero-width spike along that ray (the polygon returns
+    # to the origin along it): cut the end ray back to its neighbour's range, as unknown.
+    for end, inner in ((0, 1), (-1, -2)):
+        if ranges[end] - ranges[inner] > threshold_m:
+            ranges[end] = ranges[inner]
+            frontier[end] = True
+    jumps = np.flatnonzero(np.abs(np.diff(ranges)) > threshold_m)
+    if jumps.size == 0:
+        return bearings, ranges, frontier
+    b_out: list[float] = []
+    r_out: list[float] = []
+    f_out: list[bool] = []
+    jump_set = set(jumps.tolist())
+    for i in range(bearings.size):
+        b_out.append(float(bearings[i]))
+        r_out.append(float(ranges[i]))
+        f_out.append(bool(frontier[i]))
+        if i in jump_set:
+            near = min(ranges[i], ranges[i + 1])
+            far_bearing = bearings[i + 1] if ranges[i] < ranges[i + 1] else bearings[i]
+            b_out.append(float(far_bearing))
+            r_out.append(float(near))
+            f_out.append(True)
+    return np.array(b_out), np.array(r_out), np.array(f_out, dtype=bool)
+
+
+def _subsample(
+    points: FloatArray, frontier: NDArray[np.bool_], spacing_m: float
+) -> NDArray[np.intp]:
+    """Indices to keep: drop a vertex closer than ``spacing_m`` to the last kept one of the same
+    kind, but always keep the ends and both sides of every kind change."""
+    n = points.shape[0]
+    change = np.zeros(n, dtype=bool)
+    change[1:] |= frontier[1:] != frontier[:-1]
+    change[:-1] |= frontier[:-1] != frontier[1:]
+    change[0] = change[-1] = True
+    keep = [0]
+    last = points[0]
+    for i in range(1, n):
+        if change[i] or math.hypot(points[i, 0] - last[0], points[i, 1] - last[1]) >= spacing_m:
+            keep.append(i)
+            last = points[i]
+    return np.asarray(keep, dtype=np.intp)
+
+
+def _outward_normals(vertices: FloatArray) -> FloatArray:
+    """Unit outward normal per vertex of a counter-clockwise ring (mean of its edges' normals)."""
+    nxt = np.roll(vertices, -1, axis=0)
+    edge = nxt - vertices
+    # Outward normal of a CCW edge (dx, dy) is (dy, -dx).
+    en = np.column_stack((edge[:, 1], -edge[:, 0]))
+    en /= np.maximum(np.linalg.norm(en, axis=1, keepdims=True), 1e-12)
+    vn = en + np.roll(en, 1, axis=0)
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    # A cusp (antiparallel edges) has no mean; fall back to the outgoing edge's normal.
+    return np.where(norm > 1e-6, vn / np.maximum(norm, 1e-12), en)
+
+
+def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> FovPolygon:
+    """Build the field-of-view polygon of ``scan`` in its own (body = keyframe) frame."""
+    p = params or PolygonParams()
+    ranges, frontier = _classify_ranges(scan, p.frontier_range_tolerance_m)
+    bearings, ranges, frontier = _insert_occlusions(
+        scan.bearings_rad, ranges, frontier, p.occlusion_threshold_m
+    )
+    pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
+    keep = _subsample(pts, frontier, p.min_vertex_spacing_m)
+    pts, frontier = pts[keep], frontier[keep]
+    span = scan.bearings_rad[-1] - scan.bearings_rad[0]
+    increment = span / (scan.bearings_rad.size - 1)
+    has_origin = span + 1.5 * increment < 2.0 * math.pi
+    kinds = np.where(frontier, VertexKind.FRONTIER, VertexKind.OBSTACLE).astype(np.int8)
+    if has_origin:
+        first = _side_points(pts[0], p.side_frontier_spacing_m)
+        last = _side_points(pts[-1], p.side_frontier_spacing_m)[::-1]
+        pts = np.vstack((np.zeros((1, 2)), first, pts, last))
+        kinds = np.concatenate(
+            (
+                np.array([VertexKind.FREE], dtype=np.int8),
+                np.full(first.shape[0], VertexKind.FRONTIER, dtype=np.int8),
+                kinds,
+                np.full(last.shape[0], VertexKind.FRONTIER, dtype=np.int8),
+            )
+        )
+    shape = shapely.Polygon(pts)
+    if not shape.is_valid:
+        shape = _largest_valid_part(shape)
+    shapely.prepare(shape)
+    return FovPolygon(pts, kinds, _outward_normals(pts), has_origin, shape)
+
+
+def _side_points(end_xy: FloatArray, spacing_m: float) -> FloatArray:
+    """Points from the origin towards ``end_xy`` every ``spacing_m``, stopping short of it."""
+    length = float(np.hypot(end_xy[0], end_xy[1]))
+    if spacing_m <= 0.0 or length < 1.5 * spacing_m:
+        return np.zeros((0, 2))
+    steps = np.arange(spacing_m, length - 0.5 * spacing_m, spacing_m)
+    return np.outer(steps / length, end_xy)
+
+
+def _largest_valid_part(shape: shapely.Polygon) -> shapely.Polygon:
+    """Repair a self-touching ring (possible with coincident returns) to its largest polygon."""
+    fixed = shapely.make_valid(shape)
+    polys = [g for g in getattr(fixed, "geoms", [fixed]) if isinstance(g, shapely.Polygon)]
+    if not polys:
+        return shapely.Polygon()
+    return max(polys, key=lambda g: g.area)

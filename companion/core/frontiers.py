@@ -1,0 +1,84 @@
+"""The open frontier set: which frontier vertices are still open and worth a flight."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.core.fov_polygon import VertexKind
+from companion.core.geometry import FloatArray, Pose2
+from companion.core.local_map import Keyframe, LocalMap
+
+
+@dataclass(frozen=True, slots=True)
+class FrontierKey:
+    """A frontier vertex: vertex ``index`` of keyframe ``keyframe_id``'s polygon."""
+
+    keyframe_id: int
+    index: int
+
+
+def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
+    """For each open frontier vertex, the length of frontier edges in its run of consecutive open
+    frontier vertices (0 for other vertices). Tiny runs are fragments not worth a flight."""
+    n = kinds.size
+    is_open = kinds == VertexKind.FRONTIER
+    sizes = np.zeros(n)
+    if not is_open.any():
+        return sizes
+    edge_len = np.linalg.norm(np.roll(vertices_xy, -1, axis=0) - vertices_xy, axis=1)
+    if is_open.all():
+        sizes[:] = edge_len.sum()
+        return sizes
+    start = int(np.flatnonzero(~is_open)[0])  # walk the ring from a closed vertex
+    i = 0
+    while i < n:
+        j = (start + i) % n
+        if not is_open[j]:
+            i += 1
+            continue
+        members = []
+        while i < n and is_open[(start + i) % n]:
+            members.append((start + i) % n)
+            i += 1
+        # Edges into the run, inside it, and out of it.
+        total = edge_len[(members[0] - 1) % n] + sum(edge_len[m] for m in members)
+        sizes[members] = total
+    return sizes
+
+
+def targetable_indices(kf: Keyframe, min_size_m: float) -> NDArray[np.intp]:
+    """Open frontier vertices of a keyframe whose run is at least ``min_size_m`` long."""
+    sizes = run_sizes_m(kf.kinds, kf.polygon.vertices_xy)
+    return np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (sizes >= min_size_m))
+
+
+@dataclass(frozen=True, slots=True)
+class FrontierPoint:
+    """An open frontier vertex expressed in some keyframe's frame, for reports and plots."""
+
+    key: FrontierKey
+    x_m: float
+    y_m: float
+
+
+def open_frontiers_in(
+    local_map: LocalMap, frame_id: int, keyframe_ids: list[int] | None = None
+) -> list[FrontierPoint]:
+    """Open frontier vertices of the given keyframes (all by default) in ``frame_id``'s frame."""
+    ids = list(local_map.keyframes) if keyframe_ids is None else keyframe_ids
+    out: list[FrontierPoint] = []
+    for k in ids:
+        kf = local_map.keyframes[k]
+        idx = kf.open_frontier_indices()
+        if idx.size == 0:
+            continue
+        pose: Pose2 = local_map.pose_in(frame_id, k)
+        pts = pose.apply(kf.polygon.vertices_xy[idx])
+        out.extend(
+            FrontierPoint(FrontierKey(k, int(i)), float(x), float(y))
+            for i, (x, y) in zip(idx, pts, strict=True)
+        )
+    return out

@@ -1,0 +1,88 @@
+"""SE(2) poses and transforms in the core's frame: x forward/east, y left/north, yaw CCW from x."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def wrap_angle(angle_rad: float) -> float:
+    """Wrap an angle to [-pi, pi)."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def wrap_angles(angles_rad: FloatArray) -> FloatArray:
+    """Vectorised :func:`wrap_angle`."""
+    return np.asarray((angles_rad + np.pi) % (2.0 * np.pi) - np.pi, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True)
+class Pose2:
+    """A rigid transform in the plane; as a pose, where a frame sits in its parent frame."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_rad: float = 0.0
+
+    @staticmethod
+    def identity() -> Pose2:
+        return Pose2(0.0, 0.0, 0.0)
+
+    def is_finite(self) -> bool:
+        return math.isfinite(self.x_m) and math.isfinite(self.y_m) and math.isfinite(self.yaw_rad)
+
+    def compose(self, other: Pose2) -> Pose2:
+        """``self ∘ other``: ``other`` given in ``self``'s frame, lifted to ``self``'s parent."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return Pose2(
+            self.x_m + c * other.x_m - s * other.y_m,
+            self.y_m + s * other.x_m + c * other.y_m,
+            wrap_angle(self.yaw_rad + other.yaw_rad),
+        )
+
+    def __matmul__(self, other: Pose2) -> Pose2:
+        return self.compose(other)
+
+    def inverse(self) -> Pose2:
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return Pose2(
+            -(c * self.x_m + s * self.y_m),
+            -(-s * self.x_m + c * self.y_m),
+            wrap_angle(-self.yaw_rad),
+        )
+
+    def between(self, other: Pose2) -> Pose2:
+        """The transform from this pose to ``other``: ``self⁻¹ ∘ other``."""
+        return self.inverse().compose(other)
+
+    def apply(self, points_xy: FloatArray) -> FloatArray:
+        """Map an (N, 2) array of points from this frame into its parent frame."""
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        out = np.empty_like(pts)
+        out[:, 0] = c * pts[:, 0] - s * pts[:, 1] + self.x_m
+        out[:, 1] = s * pts[:, 0] + c * pts[:, 1] + self.y_m
+        return out
+
+    def apply_point(self, x_m: float, y_m: float) -> tuple[float, float]:
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return (c * x_m - s * y_m + self.x_m, s * x_m + c * y_m + self.y_m)
+
+    def rotate(self, vectors_xy: FloatArray) -> FloatArray:
+        """Rotate (N, 2) direction vectors into the parent frame (no translation)."""
+        v = np.asarray(vectors_xy, dtype=np.float64).reshape(-1, 2)
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return np.column_stack((c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]))
+
+    def affine(self) -> tuple[float, float, float, float, float, float]:
+        """Coefficients ``[a, b, d, e, xoff, yoff]`` for ``shapely.affinity.affine_transform``."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return (c, -s, s, c, self.x_m, self.y_m)
+
+    def distance_to(self, other: Pose2) -> float:
+        return math.hypot(other.x_m - self.x_m, other.y_m - self.y_m)

@@ -1,0 +1,241 @@
+"""The local-polygon map (thesis 2.8, "second approach").
+
+One field-of-view polygon per keyframe, kept in that keyframe's own frame; keyframes joined by a
+pose graph of relative transforms. For a keyframe, the *neighbourhood* is every keyframe reached by
+a breadth-first walk along the graph whose polygon, moved into this keyframe's frame, intersects
+this keyframe's polygon (eq. 2.13, 2.14): a branch stops where the polygons no longer overlap. The
+*grown polygon* is the union of the neighbourhood's polygons. A frontier vertex is closed (typed
+free, eq. 2.15) when the space just beyond it lies inside another view of the neighbourhood, or
+when another view saw a wall right there. Loop closures add an edge and re-run this closing for the
+newer keyframe; no vertex is ever moved.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+from shapely import affinity
+
+from companion.core.errors import GraphError
+from companion.core.fov_polygon import FovPolygon, VertexKind
+from companion.core.geometry import FloatArray, Pose2
+from companion.core.pose_graph import EdgeType, PoseGraph
+
+
+@dataclass(frozen=True, slots=True)
+class MapParams:
+    """Tuning for frontier closing."""
+
+    closing_offset_m: float = 0.15  # how far beyond a frontier vertex another view must reach
+    wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
+
+
+@dataclass(slots=True)
+class Keyframe:
+    """A pose-graph vertex: its polygon (immutable) and the current kind of each vertex."""
+
+    keyframe_id: int
+    stamp_s: float
+    odom_pose: Pose2  # the state estimate when it was taken (odometry frame; drifts)
+    polygon: FovPolygon
+    kinds: NDArray[np.int8] = field(init=False)
+    radius_m: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.kinds = self.polygon.kinds.copy()
+        self.radius_m = float(np.max(np.linalg.norm(self.polygon.vertices_xy, axis=1)))
+
+    def open_frontier_indices(self) -> NDArray[np.intp]:
+        return np.flatnonzero(self.kinds == VertexKind.FRONTIER)
+
+    def beyond_points(self, indices: NDArray[np.intp], offset_m: float) -> FloatArray:
+        """Points just outside the polygon at the given vertices, in this keyframe's frame."""
+        return self.polygon.vertices_xy[indices] + offset_m * self.polygon.outward_xy[indices]
+
+
+def _moved(shape: shapely.Polygon, pose: Pose2) -> shapely.Polygon:
+    return affinity.affine_transform(shape, pose.affine())
+
+
+def _segments_geometry(segments: FloatArray) -> shapely.MultiLineString:
+    if segments.shape[0] == 0:
+        return shapely.MultiLineString()
+    return shapely.multilinestrings(shapely.linestrings(segments))
+
+
+@dataclass(slots=True)
+class LocalView:
+    """The neighbourhood of one keyframe expressed in that keyframe's frame (cached)."""
+
+    keyframe_id: int
+    poses: dict[int, Pose2]  # pose of each neighbour (and itself) in this frame
+    grown: shapely.Geometry  # union of the neighbourhood's polygons (known free space)
+    obstacles: shapely.MultiLineString  # every obstacle edge seen in the neighbourhood
+
+
+class LocalMap:
+    """Keyframes, their polygons and the pose graph; answers frontier and free-space queries."""
+
+    def __init__(self, params: MapParams | None = None) -> None:
+        self.params = params or MapParams()
+        self.graph = PoseGraph()
+        self.keyframes: dict[int, Keyframe] = {}
+        self._neighbours: dict[int, dict[int, Pose2]] = {}
+        self._views: dict[int, LocalView] = {}
+        self._next_id = 0
+        self.loop_closures = 0
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def add_keyframe(
+        self,
+        stamp_s: float,
+        odom_pose: Pose2,
+        polygon: FovPolygon,
+        parent: tuple[int, Pose2] | None = None,
+    ) -> Keyframe:
+        """Add a keyframe, joined by an odometry edge to ``parent = (id, pose of new in parent)``,
+        and close the frontiers its view and its neighbours' views cover."""
+        kf_id = self._next_id
+        self._next_id += 1
+        kf = Keyframe(kf_id, stamp_s, odom_pose, polygon)
+        self.keyframes[kf_id] = kf
+        self.graph.add_keyframe(kf_id)
+        self._neighbours[kf_id] = {}
+        if parent is not None:
+            self.graph.add_edge(parent[0], kf_id, parent[1], EdgeType.ODOMETRY)
+        self._integrate(kf_id)
+        return kf
+
+    def add_loop_closure(self, earlier_id: int, later_id: int, earlier_to_later: Pose2) -> None:
+        """Join two keyframes by a loop-closure edge and close what their views now share."""
+        if earlier_id not in self.keyframes or later_id not in self.keyframes:
+            raise GraphError(f"loop closure names unknown keyframe {earlier_id} or {later_id}")
+        self.graph.add_edge(earlier_id, later_id, earlier_to_later, EdgeType.LOOP_CLOSURE)
+        self.loop_closures += 1
+        self._integrate(later_id)
+
+    def neighbourhood(self, keyframe_id: int) -> dict[int, Pose2]:
+        """Neighbours of a keyframe with their pose in its frame (the keyframe itself excluded)."""
+        return dict(self._neighbours[keyframe_id])
+
+    def view(self, keyframe_id: int) -> LocalView:
+        """The keyframe's neighbourhood, grown polygon and obstacles, in its frame (cached).
+
+        Building a view applies eq. 2.15 over its grown polygon: every open frontier of the
+        neighbourhood whose space just beyond lies inside the grown free space is closed.
+        """
+        cached = self._views.get(keyframe_id)
+        if cached is not None:
+            return cached
+        poses = {keyframe_id: Pose2.identity(), **self._neighbours[keyframe_id]}
+        shapes = [_moved(self.keyframes[k].polygon.shape, p) for k, p in poses.items()]
+        # Rounding in the move can make a near-degenerate ring self-touch; repair before union.
+        shapes = [s if s.is_valid else shapely.make_valid(s) for s in shapes]
+        grown = shapely.union_all(shapes, grid_size=1e-3)  # snap rounding: robust unions
+        shapely.prepare(grown)
+        segs = [
+            p.apply(self.keyframes[k].polygon.obstacle_segments().reshape(-1, 2))
+            for k, p in poses.items()
+        ]
+        obstacles = _segments_geometry(np.vstack(segs).reshape(-1, 2, 2))
+        shapely.prepare(obstacles)
+        view = LocalView(keyframe_id, poses, grown, obstacles)
+        self._views[keyframe_id] = view
+        self._close_in_grown(view)
+        return view
+
+    def open_frontier_count(self) -> int:
+        return int(
+            sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values())
+        )
+
+    def pose_in(self, frame_id: int, keyframe_id: int) -> Pose2:
+        """Pose of a keyframe in another's frame: the cached neighbourhood or the graph path."""
+        if frame_id == keyframe_id:
+            return Pose2.identity()
+        cached = self._neighbours[frame_id].get(keyframe_id)
+        return cached if cached is not None else self.graph.relative(frame_id, keyframe_id)
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _find_neighbourhood(self, kf_id: int) -> dict[int, Pose2]:
+        kf = self.keyframes[kf_id]
+        shape = kf.polygon.shape
+
+        def overlaps(other_id: int, pose: Pose2) -> bool:
+            other = self.keyframes[other_id]
+            if math.hypot(pose.x_m, pose.y_m) > kf.radius_m + other.radius_m:
+                return False
+            return bool(shape.intersects(_moved(other.polygon.shape, pose)))
+
+        return {
+            v.keyframe_id: v.pose_in_start
+            for v in self.graph.walk(kf_id, overlaps)
+            if v.keyframe_id != kf_id
+        }
+
+    def _integrate(self, kf_id: int) -> None:
+        """(Re)compute a keyframe's neighbourhood, then close the frontiers it shares."""
+        nbrs = self._find_neighbourhood(kf_id)
+        self._neighbours[kf_id] = nbrs
+        self._views.pop(kf_id, None)
+        for other_id, pose in nbrs.items():
+            self._neighbours[other_id][kf_id] = pose.inverse()
+            self._views.pop(other_id, None)
+        self._close_at_walls(kf_id, nbrs)
+        self.view(kf_id)
+
+    def _close_in_grown(self, view: LocalView) -> None:
+        """Eq. 2.15: a frontier vertex whose outside lies in the grown free space is free."""
+        off = self.params.closing_offset_m
+        for k, pose in view.poses.items():
+            kf = self.keyframes[k]
+            idx = kf.open_frontier_indices()
+            if idx.size == 0:
+                continue
+            pts = pose.apply(kf.beyond_points(idx, off))
+            inside = shapely.contains_xy(view.grown, pts[:, 0], pts[:, 1])
+            kf.kinds[idx[inside]] = VertexKind.FREE
+
+    def _close_at_walls(self, kf_id: int, nbrs: dict[int, Pose2]) -> None:
+        """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
+        sensor's limit leaves such vertices, and nothing beyond them can ever be seen)."""
+        kf = self.keyframes[kf_id]
+        snap = self.params.wall_snap_m
+        own = kf.open_frontier_indices()
+        own_xy = kf.polygon.vertices_xy[own]
+        own_closed = np.zeros(own.size, dtype=bool)
+        for other_id, pose in nbrs.items():
+            other = self.keyframes[other_id]
+            if own.size:
+                own_closed |= self._near_walls(other, pose.inverse().apply(own_xy), snap)
+            theirs = other.open_frontier_indices()
+            if theirs.size:
+                pts = pose.apply(other.polygon.vertices_xy[theirs])
+                other.kinds[theirs[self._near_walls(kf, pts, snap)]] = VertexKind.FREE
+        kf.kinds[own[own_closed]] = VertexKind.FREE
+
+    @staticmethod
+    def _near_walls(kf: Keyframe, points_xy: FloatArray, snap_m: float) -> NDArray[np.bool_]:
+        segs = kf.polygon.obstacle_segments()
+        if segs.shape[0] == 0 or points_xy.shape[0] == 0:
+            return np.zeros(points_xy.shape[0], dtype=bool)
+        near: NDArray[np.bool_] = _point_segment_distance(points_xy, segs).min(axis=1) < snap_m
+        return near
+
+
+def _point_segment_distance(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
+    """(N, M) distances from N points to M segments given as (M, 2, 2)."""
+    a = segments[None, :, 0, :]
+    ab = segments[None, :, 1, :] - a
+    ap = points_xy[:, None, :] - a
+    denom = np.maximum(np.einsum("nmk,nmk->nm", ab, ab), 1e-12)
+    t = np.clip(np.einsum("nmk,nmk->nm", ap, ab) / denom, 0.0, 1.0)
+    closest = a + t[..., None] * ab
+    return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)

@@ -1,0 +1,367 @@
+"""Rapid frontier selection on the local-polygon map (thesis 2.9; Cieslewski et al. 2017).
+
+Each step, in the frame of the current keyframe:
+
+1. Keep the committed goal while its frontier is open and the straight path to it is accessible.
+2. Otherwise pick, among the open frontiers of the current neighbourhood (the current view and
+   the views that overlap it), the one needing the least change of heading, with distance as a
+   small tie-break, whose goal point passes the accessibility check (2.9.2).
+3. When none is accessible, fall back to the classical method (2.9.3): a breadth-first search along
+   the pose graph to the nearest keyframe with open frontiers, flown back through the keyframes on
+   that path as waypoints, each expressed relative to the current keyframe.
+
+A goal point stands off from its frontier vertex into known free space: first on the frontier's
+normal (the thesis's "normal point"), else back along the ray that observed it. Frontiers that stay
+open after ``max_attempts`` visits, or stay out of reach, are set aside so exploration always ends.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+import shapely
+
+from companion.core.frontiers import FrontierKey, targetable_indices
+from companion.core.geometry import FloatArray, Pose2, wrap_angle, wrap_angles
+from companion.core.local_map import LocalMap, LocalView
+
+
+class Mode(Enum):
+    EXPLORING = "exploring"  # flying to a frontier of the current neighbourhood
+    BACKTRACKING = "backtracking"  # flying back along the pose graph
+    COMPLETE = "complete"  # no open, reachable frontier is left
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerParams:
+    """Tuning of the frontier planner; distances in metres, angles in radians, times in seconds."""
+
+    body_radius_m: float = 0.25
+    clearance_margin_m: float = 0.25
+    standoff_m: float = 1.0
+    min_frontier_size_m: float = 0.3
+    max_candidates_checked: int = 24
+    distance_weight_rad_per_m: float = 0.08
+    goal_reached_m: float = 0.3
+    waypoint_reached_m: float = 0.5
+    look_reached_rad: float = 0.3
+    settle_s: float = 1.0
+    max_attempts: int = 2
+    cruise_speed_mps: float = 1.5
+    goal_timeout_min_s: float = 10.0
+    turn_first_rad: float = 0.35
+    shortcut_hops: int = 6
+
+    @property
+    def clearance_m(self) -> float:
+        return self.body_radius_m + self.clearance_margin_m
+
+
+@dataclass(frozen=True, slots=True)
+class Target:
+    """Where to go, in the current keyframe's frame: position and the yaw to hold there."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    """The planner's answer for one step."""
+
+    mode: Mode
+    target: Target
+    goal: FrontierKey | None = None
+    relocalize_to: int | None = None  # the vehicle has reached this keyframe of the route
+    want_keyframe: bool = False  # take a new view here (a goal was reached)
+
+
+@dataclass(slots=True)
+class _Goal:
+    key: FrontierKey
+    local_xy: tuple[float, float]  # goal point in the frontier keyframe's frame
+    look_local_rad: float  # yaw to hold at the goal, in the frontier keyframe's frame
+    selected_s: float
+    deadline_s: float
+    arrived_s: float | None = None
+
+
+@dataclass(slots=True)
+class _Route:
+    keyframes: list[int]  # remaining route, next waypoint first; the last one holds the frontier
+    target_keyframe: int
+
+
+@dataclass(slots=True)
+class _Candidate:
+    key: FrontierKey
+    goal_xy: FloatArray  # in the current frame
+    look_rad: float
+    score: float
+
+
+@dataclass(slots=True)
+class FrontierPlanner:
+    """Stateful goal selection; pure: every input comes in through :meth:`plan`."""
+
+    params: PlannerParams = field(default_factory=PlannerParams)
+    goal: _Goal | None = None
+    route: _Route | None = None
+    attempts: dict[FrontierKey, int] = field(default_factory=dict)
+    set_aside: set[FrontierKey] = field(default_factory=set)
+
+    def plan(self, local_map: LocalMap, frame_id: int, vehicle: Pose2, stamp_s: float) -> Decision:
+        """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame)."""
+        view = local_map.view(frame_id)
+        here = np.array([vehicle.x_m, vehicle.y_m])
+        required = self._required_clearance(view, here)
+
+        if self.goal is not None:
+            decision = self._follow_goal(
+                local_map, frame_id, view, vehicle, here, required, stamp_s
+            )
+            if decision is not None:
+                return decision
+
+        best = self._select_local(local_map, frame_id, view, vehicle, here, required)
+        if best is not None:
+            self.route = None
+            self._commit(local_map, frame_id, best, here, stamp_s)
+            return self._fly(vehicle, best.goal_xy, best.look_rad, Mode.EXPLORING, best.key)
+
+        return self._backtrack(local_map, frame_id, view, vehicle, here, required)
+
+    # -- the committed goal ---------------------------------------------------------------------
+
+    def _follow_goal(
+        self,
+        local_map: LocalMap,
+        frame_id: int,
+        view: LocalView,
+        vehicle: Pose2,
+        here: FloatArray,
+        required: float,
+        stamp_s: float,
+    ) -> Decision | None:
+        goal = self.goal
+        assert goal is not None
+        kf = local_map.keyframes[goal.key.keyframe_id]
+        if kf.kinds[goal.key.index] != 1 or goal.key in self.set_aside:  # closed: seen
+            self.goal = None
+            return None
+        pose = view.poses.get(goal.key.keyframe_id)
+        if pose is None:
+            pose = local_map.pose_in(frame_id, goal.key.keyframe_id)
+        gx, gy = pose.apply_point(*goal.local_xy)
+        goal_xy = np.array([gx, gy])
+        look = wrap_angle(goal.look_local_rad + pose.yaw_rad)
+        dist = float(np.hypot(*(goal_xy - here)))
+        facing = abs(wrap_angle(look - vehicle.yaw_rad)) <= self.params.look_reached_rad
+        if goal.arrived_s is None and dist <= self.params.goal_reached_m and facing:
+            goal.arrived_s = stamp_s
+            return Decision(Mode.EXPLORING, Target(gx, gy, look), goal.key, want_keyframe=True)
+        if goal.arrived_s is not None and stamp_s - goal.arrived_s >= self.params.settle_s:
+            self._failed(goal.key)
+            self.goal = None
+            return None
+        if goal.arrived_s is None and stamp_s > goal.deadline_s:
+            self._failed(goal.key)
+            self.goal = None
+            return None
+        blocked = dist > self.params.goal_reached_m and not self._accessible(
+            view, here, goal_xy, required
+        )
+        if goal.arrived_s is None and blocked:
+            self.goal = None
+            return None
+        return self._fly(vehicle, goal_xy, look, Mode.EXPLORING, goal.key)
+
+    def _commit(
+        self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float
+    ) -> None:
+        pose = local_map.pose_in(frame_id, c.key.keyframe_id).inverse()
+        lx, ly = pose.apply_point(float(c.goal_xy[0]), float(c.goal_xy[1]))
+        dist = float(np.hypot(*(c.goal_xy - here)))
+        budget = max(self.params.goal_timeout_min_s, 3.0 * dist / self.params.cruise_speed_mps)
+        self.goal = _Goal(
+            c.key, (lx, ly), wrap_angle(c.look_rad + pose.yaw_rad), stamp_s, stamp_s + budget
+        )
+
+    def _failed(self, key: FrontierKey) -> None:
+        n = self.attempts.get(key, 0) + 1
+        self.attempts[key] = n
+        if n >= self.params.max_attempts:
+            self.set_aside.add(key)
+
+    # -- rapid selection in the current neighbourhood -------------------------------------------
+
+    def _candidates(
+        self, local_map: LocalMap, view: LocalView, vehicle: Pose2, here: FloatArray
+    ) -> list[_Candidate]:
+        p = self.params
+        keys: list[FrontierKey] = []
+        goals: list[FloatArray] = []
+        looks: list[FloatArray] = []
+        for k, pose in view.poses.items():
+            kf = local_map.keyframes[k]
+            idx = targetable_indices(kf, p.min_frontier_size_m)
+            if idx.size == 0:
+                continue
+            idx = np.array(
+                [i for i in idx if FrontierKey(k, int(i)) not in self.set_aside], dtype=np.intp
+            )
+            if idx.size == 0:
+                continue
+            v = kf.polygon.vertices_xy[idx]
+            n = kf.polygon.outward_xy[idx]
+            normal_pt = v - p.standoff_m * n
+            ray_len = np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+            ray_pt = v * np.maximum(ray_len - p.standoff_m, 0.0) / ray_len
+            for pts in (normal_pt, ray_pt):
+                goals.append(pose.apply(pts))
+                looks.append(np.arctan2(*pose.rotate(n)[:, ::-1].T))
+                keys.extend(FrontierKey(k, int(i)) for i in idx)
+        if not keys:
+            return []
+        g = np.vstack(goals)
+        look = np.concatenate(looks)
+        delta = g - here
+        dist = np.hypot(delta[:, 0], delta[:, 1])
+        travel = np.arctan2(delta[:, 1], delta[:, 0])
+        heading = np.where(dist > 0.5, travel, look)
+        change = np.abs(wrap_angles(heading - vehicle.yaw_rad))
+        score = change + p.distance_weight_rad_per_m * dist
+        inside = shapely.contains_xy(view.grown, g[:, 0], g[:, 1])
+        order = np.argsort(score, kind="stable")
+        return [
+            _Candidate(keys[i], g[i], float(look[i]), float(score[i])) for i in order if inside[i]
+        ]
+
+    def _select_local(
+        self,
+        local_map: LocalMap,
+        frame_id: int,
+        view: LocalView,
+        vehicle: Pose2,
+        here: FloatArray,
+        required: float,
+    ) -> _Candidate | None:
+        candidates = self._candidates(local_map, view, vehicle, here)
+        for c in candidates[: self.params.max_candidates_checked]:
+            if self._accessible(view, here, c.goal_xy, required):
+                return c
+        return None
+
+    # -- accessibility (2.9.2) ------------------------------------------------------------------
+
+    def _required_clearance(self, view: LocalView, here: FloatArray) -> float:
+        """The clearance a path must keep: the configured one, or (when the vehicle is already
+        closer to a wall) nearly what it has now, so it can always move away."""
+        if view.obstacles.is_empty:
+            return self.params.clearance_m
+        now = float(shapely.distance(shapely.Point(here), view.obstacles))
+        return min(self.params.clearance_m, 0.9 * now)
+
+    def _accessible(
+        self, view: LocalView, start: FloatArray, goal: FloatArray, required: float
+    ) -> bool:
+        """Straight path inside known free space and clear of every obstacle edge in view."""
+        if float(np.hypot(*(goal - start))) < 1e-6:
+            return bool(shapely.contains_xy(view.grown, goal[0], goal[1]))
+        path = shapely.LineString([start, goal])
+        if not view.grown.covers(path):
+            return False
+        if view.obstacles.is_empty:
+            return True
+        return float(shapely.distance(path, view.obstacles)) >= required
+
+    # -- classical fallback (2.9.3) -------------------------------------------------------------
+
+    def _backtrack(
+        self,
+        local_map: LocalMap,
+        frame_id: int,
+        view: LocalView,
+        vehicle: Pose2,
+        here: FloatArray,
+        required: float,
+    ) -> Decision:
+        if (
+            self.route is None
+            or self.route.target_keyframe not in local_map.keyframes
+            or not self._has_targets(local_map, self.route.target_keyframe)
+        ):
+            self.route = self._find_route(local_map, frame_id)
+        if self.route is None:
+            return Decision(Mode.COMPLETE, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
+        route = self.route
+        # The route ends here: the frontiers of the target keyframe are out of reach from it.
+        if route.keyframes and route.keyframes[0] == frame_id and len(route.keyframes) == 1:
+            origin_dist = math.hypot(vehicle.x_m, vehicle.y_m)
+            if origin_dist <= self.params.waypoint_reached_m:
+                for i in targetable_indices(
+                    local_map.keyframes[frame_id], self.params.min_frontier_size_m
+                ):
+                    self._failed(FrontierKey(frame_id, int(i)))
+                self.route = None
+                return Decision(
+                    Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad)
+                )
+        # Skip ahead to the farthest route keyframe in view that a straight path reaches.
+        nxt = route.keyframes[0]
+        for j in range(min(len(route.keyframes), self.params.shortcut_hops) - 1, 0, -1):
+            k = route.keyframes[j]
+            pose = view.poses.get(k)
+            if pose is not None and self._accessible(
+                view, here, np.array([pose.x_m, pose.y_m]), required
+            ):
+                del route.keyframes[:j]
+                nxt = k
+                break
+        pose = local_map.pose_in(frame_id, nxt)
+        wp = np.array([pose.x_m, pose.y_m])
+        if float(np.hypot(*(wp - here))) <= self.params.waypoint_reached_m:
+            if len(route.keyframes) > 1:
+                route.keyframes.pop(0)
+            return Decision(
+                Mode.BACKTRACKING, Target(pose.x_m, pose.y_m, pose.yaw_rad), relocalize_to=nxt
+            )
+        return self._fly(
+            vehicle, wp, float(np.arctan2(*(wp - here)[::-1])), Mode.BACKTRACKING, None
+        )
+
+    def _has_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
+        kf = local_map.keyframes[keyframe_id]
+        idx = targetable_indices(kf, self.params.min_frontier_size_m)
+        return any(FrontierKey(keyframe_id, int(i)) not in self.set_aside for i in idx)
+
+    def _find_route(self, local_map: LocalMap, frame_id: int) -> _Route | None:
+        for visit in local_map.graph.walk(frame_id):
+            if self._has_targets(local_map, visit.keyframe_id):
+                path = local_map.graph.path(frame_id, visit.keyframe_id)
+                return _Route(path[1:] if len(path) > 1 else path, visit.keyframe_id)
+        return None
+
+    # -- output ---------------------------------------------------------------------------------
+
+    def _fly(
+        self,
+        vehicle: Pose2,
+        goal_xy: FloatArray,
+        look_rad: float,
+        mode: Mode,
+        key: FrontierKey | None,
+    ) -> Decision:
+        """Turn towards the goal before moving, so the sensor sees the path it flies."""
+        delta = goal_xy - np.array([vehicle.x_m, vehicle.y_m])
+        dist = float(np.hypot(*delta))
+        if dist <= self.params.goal_reached_m:
+            return Decision(mode, Target(float(goal_xy[0]), float(goal_xy[1]), look_rad), key)
+        travel = float(np.arctan2(delta[1], delta[0]))
+        if abs(wrap_angle(travel - vehicle.yaw_rad)) > self.params.turn_first_rad:
+            return Decision(mode, Target(vehicle.x_m, vehicle.y_m, travel), key)
+        return Decision(mode, Target(float(goal_xy[0]), float(goal_xy[1]), travel), key)

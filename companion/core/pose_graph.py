@@ -1,0 +1,143 @@
+"""Pose graph of keyframes joined by relative transforms (thesis 2.8.2).
+
+Odometry edges join consecutive keyframes; loop-closure edges join two keyframes that a SLAM back
+end recognised as the same place. Nothing is ever corrected in place: a loop closure only adds an
+edge, and every query composes relative transforms along the graph.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from enum import Enum
+
+from companion.core.errors import GraphError
+from companion.core.geometry import Pose2
+
+
+class EdgeType(Enum):
+    ODOMETRY = "odometry"
+    LOOP_CLOSURE = "loop_closure"
+
+
+@dataclass(frozen=True, slots=True)
+class GraphEdge:
+    """``from_to`` is the pose of keyframe ``to_id`` in the frame of keyframe ``from_id``."""
+
+    from_id: int
+    to_id: int
+    from_to: Pose2
+    kind: EdgeType
+
+
+@dataclass(frozen=True, slots=True)
+class Visit:
+    """A keyframe reached by a breadth-first walk: hops from the start and its pose there."""
+
+    keyframe_id: int
+    hops: int
+    pose_in_start: Pose2
+
+
+class PoseGraph:
+    """Keyframe ids and the edges between them; adjacency kept both ways."""
+
+    def __init__(self) -> None:
+        self._adjacency: dict[int, list[tuple[int, Pose2]]] = {}
+        self._edges: list[GraphEdge] = []
+
+    def __contains__(self, keyframe_id: object) -> bool:
+        return keyframe_id in self._adjacency
+
+    def __len__(self) -> int:
+        return len(self._adjacency)
+
+    @property
+    def edges(self) -> tuple[GraphEdge, ...]:
+        return tuple(self._edges)
+
+    def add_keyframe(self, keyframe_id: int) -> None:
+        if keyframe_id in self._adjacency:
+            raise GraphError(f"keyframe {keyframe_id} already in the graph")
+        self._adjacency[keyframe_id] = []
+
+    def add_edge(self, from_id: int, to_id: int, from_to: Pose2, kind: EdgeType) -> GraphEdge:
+        for k in (from_id, to_id):
+            if k not in self._adjacency:
+                raise GraphError(f"keyframe {k} is not in the graph")
+        if from_id == to_id:
+            raise GraphError("an edge must join two different keyframes")
+        if not from_to.is_finite():
+            raise GraphError("an edge transform must be finite")
+        edge = GraphEdge(from_id, to_id, from_to, kind)
+        self._edges.append(edge)
+        self._adjacency[from_id].append((to_id, from_to))
+        self._adjacency[to_id].append((from_id, from_to.inverse()))
+        return edge
+
+    def neighbours(self, keyframe_id: int) -> list[tuple[int, Pose2]]:
+        """Directly connected keyframes with their pose in ``keyframe_id``'s frame."""
+        try:
+            return list(self._adjacency[keyframe_id])
+        except KeyError:
+            raise GraphError(f"keyframe {keyframe_id} is not in the graph") from None
+
+    def walk(
+        self, start_id: int, accept: Callable[[int, Pose2], bool] | None = None
+    ) -> Iterator[Visit]:
+        """Breadth-first walk by hop count from ``start_id`` (yielded first).
+
+        A keyframe for which ``accept(id, pose_in_start)`` is False is neither yielded nor
+        expanded: the walk stops along that branch. Poses compose along the first path found.
+        """
+        if start_id not in self._adjacency:
+            raise GraphError(f"keyframe {start_id} is not in the graph")
+        seen = {start_id}
+        queue: deque[Visit] = deque([Visit(start_id, 0, Pose2.identity())])
+        while queue:
+            visit = queue.popleft()
+            yield visit
+            for nbr, rel in self._adjacency[visit.keyframe_id]:
+                if nbr in seen:
+                    continue
+                seen.add(nbr)
+                pose = visit.pose_in_start.compose(rel)
+                if accept is None or accept(nbr, pose):
+                    queue.append(Visit(nbr, visit.hops + 1, pose))
+
+    def path(self, from_id: int, to_id: int) -> list[int]:
+        """Fewest-hop path of keyframe ids from ``from_id`` to ``to_id`` (both included)."""
+        if to_id not in self._adjacency or from_id not in self._adjacency:
+            raise GraphError(f"keyframe {from_id} or {to_id} is not in the graph")
+        parent: dict[int, int] = {from_id: from_id}
+        queue: deque[int] = deque([from_id])
+        while queue:
+            k = queue.popleft()
+            if k == to_id:
+                break
+            for nbr, _ in self._adjacency[k]:
+                if nbr not in parent:
+                    parent[nbr] = k
+                    queue.append(nbr)
+        if to_id not in parent:
+            raise GraphError(f"keyframe {to_id} is not connected to {from_id}")
+        out = [to_id]
+        while out[-1] != from_id:
+            out.append(parent[out[-1]])
+        return out[::-1]
+
+    def relative(self, from_id: int, to_id: int) -> Pose2:
+        """Pose of ``to_id`` in ``from_id``'s frame, composed along the fewest-hop path."""
+        ids = self.path(from_id, to_id)
+        pose = Pose2.identity()
+        for a, b in itertools.pairwise(ids):
+            pose = pose.compose(self._edge_between(a, b))
+        return pose
+
+    def _edge_between(self, a: int, b: int) -> Pose2:
+        for nbr, rel in self._adjacency[a]:
+            if nbr == b:
+                return rel
+        raise GraphError(f"no edge between {a} and {b}")

@@ -1,0 +1,1 @@
+"""The simulated vehicle and world: a stand-in for hardware in every test and demo."""

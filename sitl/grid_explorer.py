@@ -1,0 +1,200 @@
+"""The yardstick: a grid-based nearest-frontier explorer with perfect poses (thesis 3.3).
+
+An occupancy grid is built from the scans at the true pose; the goal is the nearest frontier by
+shortest path on the grid (walls inflated by the body radius plus a margin), flown by the same
+vehicle with the same sensor and the same turn-then-go rule as the polygon explorer.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.core.geometry import FloatArray, Pose2, wrap_angle
+from companion.core.messages import DepthScan, Setpoint
+
+UNKNOWN, FREE, OCCUPIED = 0, 1, 2
+
+_NEIGHBOURS_8 = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+
+
+@dataclass(frozen=True, slots=True)
+class GridExplorerParams:
+    resolution_m: float = 0.1
+    clearance_m: float = 0.5
+    goal_reached_m: float = 0.3
+    look_reached_rad: float = 0.3
+    turn_first_rad: float = 0.35
+    lookahead_m: float = 3.0
+    min_unknown_neighbours: int = 2
+
+
+def _shift(a: NDArray[np.bool_], di: int, dj: int) -> NDArray[np.bool_]:
+    """``out[i, j] = a[i - di, j - dj]`` with False outside."""
+    out = np.zeros_like(a)
+    rows, cols = a.shape
+    out[max(di, 0) : rows + min(di, 0), max(dj, 0) : cols + min(dj, 0)] = a[
+        max(-di, 0) : rows + min(-di, 0), max(-dj, 0) : cols + min(-dj, 0)
+    ]
+    return out
+
+
+def dilate(mask: NDArray[np.bool_], radius_cells: int) -> NDArray[np.bool_]:
+    out = mask.copy()
+    for di in range(-radius_cells, radius_cells + 1):
+        for dj in range(-radius_cells, radius_cells + 1):
+            if (di or dj) and di * di + dj * dj <= radius_cells * radius_cells:
+                out |= _shift(mask, di, dj)
+    return out
+
+
+class GridExplorer:
+    """Occupancy grid + nearest-frontier planner; ``step`` takes the true pose."""
+
+    def __init__(self, bounds: tuple[float, float, float, float], params: GridExplorerParams | None = None) -> None:
+        self.params = params or GridExplorerParams()
+        res = self.params.resolution_m
+        minx, miny, maxx, maxy = bounds
+        self.x0, self.y0 = minx - 1.0, miny - 1.0
+        self.cols = int(math.ceil((maxx - minx + 2.0) / res))
+        self.rows = int(math.ceil((maxy - miny + 2.0) / res))
+        self.grid = np.full((self.rows, self.cols), UNKNOWN, dtype=np.int8)
+        self._path: list[tuple[float, float]] = []
+        self._look: float = 0.0
+        self._frontier_cell: tuple[int, int] | None = None
+        self._arrived = False
+        self.done = False
+
+    def _cell(self, x: float, y: float) -> tuple[int, int]:
+        res = self.params.resolution_m
+        return int((y - self.y0) / res), int((x - self.x0) / res)
+
+    def _centre(self, i: int, j: int) -> tuple[float, float]:
+        res = self.params.resolution_m
+        return self.x0 + (j + 0.5) * res, self.y0 + (i + 0.5) * res
+
+    def update(self, pose: Pose2, scan: DepthScan) -> None:
+        res = self.params.resolution_m
+        r = np.nan_to_num(scan.ranges_m, nan=0.0, posinf=scan.max_range_m, neginf=0.0)
+        r = np.clip(r, 0.0, scan.max_range_m)
+        hit = r < scan.max_range_m - 0.02
+        ang = scan.bearings_rad + pose.yaw_rad
+        n = int(math.ceil(scan.max_range_m / (res / 2.0))) + 1
+        t = np.linspace(0.0, 1.0, n)
+        free_len = np.maximum(r - res / 2.0, 0.0)
+        xs = pose.x_m + np.outer(free_len * np.cos(ang), t)
+        ys = pose.y_m + np.outer(free_len * np.sin(ang), t)
+        i = ((ys.ravel() - self.y0) / res).astype(np.intp)
+        j = ((xs.ravel() - self.x0) / res).astype(np.intp)
+        ok = (i >= 0) & (i < self.rows) & (j >= 0) & (j < self.cols)
+        cells = self.grid[i[ok], j[ok]]
+        self.grid[i[ok][cells != OCCUPIED], j[ok][cells != OCCUPIED]] = FREE
+        hx = pose.x_m + r[hit] * np.cos(ang[hit])
+        hy = pose.y_m + r[hit] * np.sin(ang[hit])
+        hi = ((hy - self.y0) / res).astype(np.intp)
+        hj = ((hx - self.x0) / res).astype(np.intp)
+        ok = (hi >= 0) & (hi < self.rows) & (hj >= 0) & (hj < self.cols)
+        self.grid[hi[ok], hj[ok]] = OCCUPIED
+        ci, cj = self._cell(pose.x_m, pose.y_m)
+        if self.grid[ci, cj] == UNKNOWN:
+            self.grid[ci, cj] = FREE
+
+    def frontier_cells(self) -> NDArray[np.bool_]:
+        unknown = self.grid == UNKNOWN
+        count = np.zeros(self.grid.shape, dtype=np.int8)
+        for di, dj in _NEIGHBOURS_8:
+            count += _shift(unknown, di, dj)
+        return (self.grid == FREE) & (count >= self.params.min_unknown_neighbours)
+
+    def _passable(self) -> NDArray[np.bool_]:
+        cells = int(math.ceil(self.params.clearance_m / self.params.resolution_m))
+        return (self.grid == FREE) & ~dilate(self.grid == OCCUPIED, cells)
+
+    def _plan(self, pose: Pose2) -> bool:
+        """Shortest path on the grid to the nearest frontier; False when none is reachable."""
+        frontier = self.frontier_cells()
+        passable = self._passable()
+        goals = passable & dilate(frontier, 2)
+        start = self._cell(pose.x_m, pose.y_m)
+        dist = np.full(self.grid.shape, -1, dtype=np.int32)
+        reached = np.zeros(self.grid.shape, dtype=bool)
+        reached[start] = True
+        dist[start] = 0
+        front = reached.copy()
+        d = 0
+        while front.any():
+            hits = front & goals
+            if hits.any():
+                return self._follow(pose, dist, hits, frontier)
+            d += 1
+            grown = np.zeros_like(front)
+            for di, dj in _NEIGHBOURS_8:
+                grown |= _shift(front, di, dj)
+            front = grown & passable & ~reached
+            reached |= front
+            dist[front] = d
+        return False
+
+    def _follow(self, pose: Pose2, dist: NDArray[np.int32], hits: NDArray[np.bool_], frontier: NDArray[np.bool_]) -> bool:
+        gi, gj = (int(v[0]) for v in np.nonzero(hits))
+        cells = [(gi, gj)]
+        i, j = gi, gj
+        while dist[i, j] > 0:
+            for di, dj in _NEIGHBOURS_8:
+                ni, nj = i + di, j + dj
+                if 0 <= ni < self.rows and 0 <= nj < self.cols and dist[ni, nj] == dist[i, j] - 1:
+                    i, j = ni, nj
+                    break
+            cells.append((i, j))
+        cells.reverse()
+        self._path = [self._centre(a, b) for a, b in cells[1:]] or [self._centre(gi, gj)]
+        fi, fj = np.nonzero(frontier[max(gi - 3, 0) : gi + 4, max(gj - 3, 0) : gj + 4])
+        fi, fj = fi[0] + max(gi - 3, 0), fj[0] + max(gj - 3, 0)
+        self._frontier_cell = (int(fi), int(fj))
+        fx, fy = self._centre(int(fi), int(fj))
+        gx, gy = self._path[-1]
+        self._look = math.atan2(fy - gy, fx - gx) if (fx, fy) != (gx, gy) else pose.yaw_rad
+        self._arrived = False
+        return True
+
+    def _visible(self, a: tuple[float, float], b: tuple[float, float], passable: NDArray[np.bool_]) -> bool:
+        n = int(math.hypot(b[0] - a[0], b[1] - a[1]) / (self.params.resolution_m / 2.0)) + 2
+        xs, ys = np.linspace(a[0], b[0], n), np.linspace(a[1], b[1], n)
+        res = self.params.resolution_m
+        i = ((ys - self.y0) / res).astype(np.intp)
+        j = ((xs - self.x0) / res).astype(np.intp)
+        return bool(passable[i[1:], j[1:]].all())
+
+    def step(self, pose: Pose2, scan: DepthScan | None) -> Setpoint | None:
+        """Next setpoint (world frame = true frame), or None when no frontier is reachable."""
+        if scan is not None:
+            self.update(pose, scan)
+        p = self.params
+        stale = self._frontier_cell is None or not self.frontier_cells()[self._frontier_cell]
+        if not self._path or stale or self._arrived:
+            if not self._plan(pose):
+                self.done = True
+                return None
+        here = (pose.x_m, pose.y_m)
+        # Drop reached path points, then aim at the farthest visible one within the lookahead.
+        while len(self._path) > 1 and math.hypot(self._path[0][0] - here[0], self._path[0][1] - here[1]) < p.goal_reached_m:
+            self._path.pop(0)
+        passable = self._passable()
+        carrot = self._path[0]
+        for q in self._path[1:]:
+            if math.hypot(q[0] - here[0], q[1] - here[1]) > p.lookahead_m or not self._visible(here, q, passable):
+                break
+            carrot = q
+        final = carrot == self._path[-1]
+        dist = math.hypot(carrot[0] - here[0], carrot[1] - here[1])
+        if final and dist <= p.goal_reached_m:
+            if abs(wrap_angle(self._look - pose.yaw_rad)) <= p.look_reached_rad:
+                self._arrived = True
+            return Setpoint(carrot[0], carrot[1], self._look)
+        travel = math.atan2(carrot[1] - here[1], carrot[0] - here[0])
+        if abs(wrap_angle(travel - pose.yaw_rad)) > p.turn_first_rad:
+            return Setpoint(here[0], here[1], travel)
+        return Setpoint(carrot[0], carrot[1], travel)

@@ -1,0 +1,175 @@
+"""Run one exploration in-process: a simulated vehicle, a planner, ground-truth coverage, a report.
+
+The polygon planner is the product's own :class:`~companion.core.explorer.Explorer`, driven exactly
+as the links drive it (odometry + scan in, setpoint out, loop closures as they are reported). The
+grid planner is the perfect-pose baseline.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from companion.core.explorer import Explorer, ExplorerParams
+from companion.core.geometry import Pose2
+from companion.core.messages import Setpoint
+from companion.core.planner import Mode
+from sitl.coverage import CoverageGrid
+from sitl.drift import DriftParams
+from sitl.grid_explorer import GridExplorer
+from sitl.simulation import SensorFrame, SimParams, Simulation
+from sitl.world import World
+
+PLANNERS = ("polygon", "grid")
+
+
+class Policy(Protocol):
+    """What the runner drives: one frame in, a setpoint out (None when exploration has ended)."""
+
+    def step(self, frame: SensorFrame) -> Setpoint | None: ...
+
+    def summary(self) -> dict[str, Any]: ...
+
+
+class PolygonPolicy:
+    """The product: the local-polygon explorer, fed only what a real vehicle would report."""
+
+    def __init__(self, params: ExplorerParams | None = None) -> None:
+        self.explorer = Explorer(params)
+        self.step_ms: list[float] = []
+
+    def step(self, frame: SensorFrame) -> Setpoint | None:
+        t0 = time.perf_counter()
+        if frame.loop_closure is not None:
+            self.explorer.add_loop_closure(frame.loop_closure)
+        result = self.explorer.step(frame.odometry, frame.scan)
+        self.step_ms.append((time.perf_counter() - t0) * 1e3)
+        return None if result.mode is Mode.COMPLETE else result.setpoint
+
+    def summary(self) -> dict[str, Any]:
+        m = self.explorer.map
+        planner = self.explorer.planner
+        return {
+            "keyframes": len(m),
+            "loop_closures": m.loop_closures,
+            "frontiers_left": m.open_frontier_count(),
+            "frontiers_set_aside": len(planner.set_aside),
+        }
+
+
+class GridPolicy:
+    """The perfect-pose grid baseline (it reads the true pose, as in the thesis)."""
+
+    def __init__(self, world: World) -> None:
+        self.explorer = GridExplorer(world.bounds)
+        self.step_ms: list[float] = []
+
+    def step(self, frame: SensorFrame) -> Setpoint | None:
+        t0 = time.perf_counter()
+        sp = self.explorer.step(frame.true_pose, frame.scan)
+        self.step_ms.append((time.perf_counter() - t0) * 1e3)
+        return sp
+
+    def summary(self) -> dict[str, Any]:
+        return {"keyframes": 0, "loop_closures": 0, "frontiers_left": int(self.explorer.frontier_cells().sum()), "frontiers_set_aside": 0}
+
+
+@dataclass
+class RunTrace:
+    """What a run leaves behind for reports and plots."""
+
+    report: dict[str, Any]
+    true_path: list[Pose2] = field(default_factory=list)
+    estimated_path: list[Pose2] = field(default_factory=list)
+    coverage_over_time: list[tuple[float, float]] = field(default_factory=list)
+    keyframe_true_poses: dict[int, Pose2] = field(default_factory=dict)
+    coverage: CoverageGrid | None = None
+    policy: Policy | None = None
+
+
+Progress = Callable[[float, float], None]  # (sim time s, coverage)
+
+
+def run_exploration(
+    world: World,
+    planner: str = "polygon",
+    seed: int = 1,
+    noise_scale: float = 1.0,
+    max_time_s: float = 1800.0,
+    sim_params: SimParams | None = None,
+    explorer_params: ExplorerParams | None = None,
+    progress: Progress | None = None,
+    map_label: str | None = None,
+) -> RunTrace:
+    """Explore ``world`` until the planner ends, the vehicle crashes, or ``max_time_s`` passes."""
+    if planner not in PLANNERS:
+        raise ValueError(f"planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
+    base = sim_params or SimParams()
+    scale = 0.0 if planner == "grid" else noise_scale  # the baseline has perfect poses
+    d = base.drift
+    params = SimParams(base.sensor, base.vehicle, DriftParams(d.sigma_xy_m, d.sigma_yaw_rad, d.step_m, scale), base.slam, base.physics_rate_hz)
+    sim = Simulation(world, params, seed)
+    policy: Policy = PolygonPolicy(explorer_params) if planner == "polygon" else GridPolicy(world)
+    coverage = CoverageGrid(world)
+    trace = RunTrace(report={}, coverage=coverage, policy=policy)
+    frame = sim.frame()
+    termination = "timeout"
+    time_to_99: float | None = None
+    next_sample = 0.0
+    while True:
+        coverage.mark_rays(frame.true_pose, frame.scan.bearings_rad, frame.scan.ranges_m)
+        trace.true_path.append(frame.true_pose)
+        trace.estimated_path.append(frame.odometry.pose)
+        cov = coverage.coverage
+        if time_to_99 is None and cov >= 0.99:
+            time_to_99 = frame.stamp_s
+        if frame.stamp_s >= next_sample:
+            trace.coverage_over_time.append((frame.stamp_s, cov))
+            next_sample += 1.0
+            if progress is not None:
+                progress(frame.stamp_s, cov)
+        setpoint = policy.step(frame)
+        if isinstance(policy, PolygonPolicy):
+            for k, kf in policy.explorer.map.keyframes.items():
+                if k not in trace.keyframe_true_poses and kf.stamp_s == frame.stamp_s:
+                    trace.keyframe_true_poses[k] = frame.true_pose
+        if setpoint is None:
+            termination = "complete"
+            if policy.summary()["frontiers_set_aside"]:
+                termination = "unreachable_frontiers_left"
+            break
+        if sim.crashed:
+            termination = "crash"
+            break
+        if frame.stamp_s >= max_time_s:
+            break
+        frame = sim.advance(Pose2(setpoint.x_m, setpoint.y_m, setpoint.yaw_rad))
+        if sim.crashed:
+            termination = "crash"
+            break
+    trace.coverage_over_time.append((frame.stamp_s, coverage.coverage))
+    steps = np.asarray(getattr(policy, "step_ms", [0.0]) or [0.0])
+    trace.report = {
+        "map": map_label or world.name,
+        "planner": planner,
+        "seed": seed,
+        "noise_scale": scale,
+        "coverage": round(coverage.coverage, 5),
+        "exploration_time_s": round(frame.stamp_s, 3),
+        "time_to_99_s": None if time_to_99 is None else round(time_to_99, 3),
+        "path_length_m": round(sim.path_length_m, 3),
+        "collisions": sim.collisions,
+        "termination": termination,
+        **policy.summary(),
+        "step_ms": {
+            "p50": round(float(np.percentile(steps, 50)), 3),
+            "p99": round(float(np.percentile(steps, 99)), 3),
+            "max": round(float(steps.max()), 3),
+            "count": int(steps.size),
+        },
+    }
+    return trace
