@@ -39,7 +39,10 @@ class GridSpec:
     def centres(self) -> FloatArray:
         jj, ii = np.meshgrid(np.arange(self.cols), np.arange(self.rows))
         return np.column_stack(
-            ((jj.ravel() + 0.5) * self.resolution_m + self.x0_m, (ii.ravel() + 0.5) * self.resolution_m + self.y0_m)
+            (
+                (jj.ravel() + 0.5) * self.resolution_m + self.x0_m,
+                (ii.ravel() + 0.5) * self.resolution_m + self.y0_m,
+            )
         )
 
 
@@ -69,7 +72,9 @@ class CoverageGrid:
         s = self.spec
         centres = s.centres()
         half = resolution_m / 2.0
-        boxes = shapely.box(centres[:, 0] - half, centres[:, 1] - half, centres[:, 0] + half, centres[:, 1] + half)
+        boxes = shapely.box(
+            centres[:, 0] - half, centres[:, 1] - half, centres[:, 0] + half, centres[:, 1] + half
+        )
         walls = shapely.multilinestrings(shapely.linestrings(world.walls))
         crossed = shapely.intersects(boxes, walls)
         inside = shapely.contains_xy(world.free, centres[:, 0], centres[:, 1])

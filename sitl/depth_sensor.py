@@ -25,7 +25,9 @@ class SensorParams:
         return np.linspace(-half, half, self.rays)
 
 
-def cast_rays(origin_xy: FloatArray, angles_rad: FloatArray, walls: FloatArray, max_range_m: float) -> FloatArray:
+def cast_rays(
+    origin_xy: FloatArray, angles_rad: FloatArray, walls: FloatArray, max_range_m: float
+) -> FloatArray:
     """Distance along each ray (world angles) to the first wall, ``inf`` when none within range."""
     d = np.column_stack((np.cos(angles_rad), np.sin(angles_rad)))  # (R, 2)
     a = walls[:, 0, :]  # (M, 2)
@@ -54,11 +56,20 @@ class DepthSensor:
         self.bearings = params.bearings_rad()
 
     def true_ranges(self, pose: Pose2) -> FloatArray:
-        return cast_rays(np.array([pose.x_m, pose.y_m]), self.bearings + pose.yaw_rad, self.walls, self.params.max_range_m)
+        return cast_rays(
+            np.array([pose.x_m, pose.y_m]),
+            self.bearings + pose.yaw_rad,
+            self.walls,
+            self.params.max_range_m,
+        )
 
     def scan(self, pose: Pose2, stamp_s: float) -> DepthScan:
         p = self.params
         r = self.true_ranges(pose)
         noisy = r + self.rng.normal(0.0, p.range_noise_m, r.shape) if p.range_noise_m > 0 else r
-        ranges = np.where(np.isfinite(r) & (noisy < p.max_range_m), np.maximum(noisy, p.min_range_m), p.max_range_m)
+        ranges = np.where(
+            np.isfinite(r) & (noisy < p.max_range_m),
+            np.maximum(noisy, p.min_range_m),
+            p.max_range_m,
+        )
         return DepthScan(stamp_s, self.bearings.copy(), ranges, p.max_range_m, p.min_range_m)

@@ -54,7 +54,9 @@ def dilate(mask: NDArray[np.bool_], radius_cells: int) -> NDArray[np.bool_]:
 class GridExplorer:
     """Occupancy grid + nearest-frontier planner; ``step`` takes the true pose."""
 
-    def __init__(self, bounds: tuple[float, float, float, float], params: GridExplorerParams | None = None) -> None:
+    def __init__(
+        self, bounds: tuple[float, float, float, float], params: GridExplorerParams | None = None
+    ) -> None:
         self.params = params or GridExplorerParams()
         res = self.params.resolution_m
         minx, miny, maxx, maxy = bounds
@@ -66,6 +68,8 @@ class GridExplorer:
         self._look: float = 0.0
         self._frontier_cell: tuple[int, int] | None = None
         self._arrived = False
+        self._ignored = np.zeros((self.rows, self.cols), dtype=bool)
+        self._selected = np.zeros((self.rows, self.cols), dtype=np.int16)
         self.done = False
 
     def _cell(self, x: float, y: float) -> tuple[int, int]:
@@ -107,16 +111,24 @@ class GridExplorer:
         count = np.zeros(self.grid.shape, dtype=np.int8)
         for di, dj in _NEIGHBOURS_8:
             count += _shift(unknown, di, dj)
-        return (self.grid == FREE) & (count >= self.params.min_unknown_neighbours)
+        return (self.grid == FREE) & (count >= self.params.min_unknown_neighbours) & ~self._ignored
 
-    def _passable(self) -> NDArray[np.bool_]:
-        cells = int(math.ceil(self.params.clearance_m / self.params.resolution_m))
-        return (self.grid == FREE) & ~dilate(self.grid == OCCUPIED, cells)
+    def _passable(self, pose: Pose2) -> NDArray[np.bool_]:
+        """Free cells clear of walls by the clearance, plus the free cells right around the
+        vehicle (it may sit inside the margin after braking near a wall and must get out)."""
+        res = self.params.resolution_m
+        cells = int(math.ceil(self.params.clearance_m / res))
+        passable = (self.grid == FREE) & ~dilate(self.grid == OCCUPIED, cells)
+        i, j = self._cell(pose.x_m, pose.y_m)
+        k = int(math.ceil((self.params.clearance_m + 0.1) / res))
+        near = np.zeros_like(passable)
+        near[max(i - k, 0) : i + k + 1, max(j - k, 0) : j + k + 1] = True
+        return passable | (near & (self.grid == FREE))
 
     def _plan(self, pose: Pose2) -> bool:
         """Shortest path on the grid to the nearest frontier; False when none is reachable."""
         frontier = self.frontier_cells()
-        passable = self._passable()
+        passable = self._passable(pose)
         goals = passable & dilate(frontier, 2)
         start = self._cell(pose.x_m, pose.y_m)
         dist = np.full(self.grid.shape, -1, dtype=np.int32)
@@ -138,7 +150,13 @@ class GridExplorer:
             dist[front] = d
         return False
 
-    def _follow(self, pose: Pose2, dist: NDArray[np.int32], hits: NDArray[np.bool_], frontier: NDArray[np.bool_]) -> bool:
+    def _follow(
+        self,
+        pose: Pose2,
+        dist: NDArray[np.int32],
+        hits: NDArray[np.bool_],
+        frontier: NDArray[np.bool_],
+    ) -> bool:
         gi, gj = (int(v[0]) for v in np.nonzero(hits))
         cells = [(gi, gj)]
         i, j = gi, gj
@@ -151,16 +169,29 @@ class GridExplorer:
             cells.append((i, j))
         cells.reverse()
         self._path = [self._centre(a, b) for a, b in cells[1:]] or [self._centre(gi, gj)]
-        fi, fj = np.nonzero(frontier[max(gi - 3, 0) : gi + 4, max(gj - 3, 0) : gj + 4])
-        fi, fj = fi[0] + max(gi - 3, 0), fj[0] + max(gj - 3, 0)
-        self._frontier_cell = (int(fi), int(fj))
-        fx, fy = self._centre(int(fi), int(fj))
+        lo_i, lo_j = max(gi - 3, 0), max(gj - 3, 0)
+        fi, fj = np.nonzero(frontier[lo_i : gi + 4, lo_j : gj + 4])
+        self._frontier_cell = (int(fi[0]) + lo_i, int(fj[0]) + lo_j)
+        # A frontier chosen again and again without going away is not worth another try.
+        ci, cj = self._frontier_cell
+        self._selected[ci, cj] += 1
+        if self._selected[ci, cj] > 3:
+            self._ignored[max(ci - 1, 0) : ci + 2, max(cj - 1, 0) : cj + 2] = True
+        # Look from the goal towards the unknown cells around the frontier.
+        ci, cj = self._frontier_cell
+        ui, uj = np.nonzero(self.grid[max(ci - 3, 0) : ci + 4, max(cj - 3, 0) : cj + 4] == UNKNOWN)
         gx, gy = self._path[-1]
-        self._look = math.atan2(fy - gy, fx - gx) if (fx, fy) != (gx, gy) else pose.yaw_rad
+        if ui.size:
+            ux, uy = self._centre(int(ui.mean()) + max(ci - 3, 0), int(uj.mean()) + max(cj - 3, 0))
+            self._look = math.atan2(uy - gy, ux - gx)
+        else:
+            self._look = pose.yaw_rad
         self._arrived = False
         return True
 
-    def _visible(self, a: tuple[float, float], b: tuple[float, float], passable: NDArray[np.bool_]) -> bool:
+    def _visible(
+        self, a: tuple[float, float], b: tuple[float, float], passable: NDArray[np.bool_]
+    ) -> bool:
         n = int(math.hypot(b[0] - a[0], b[1] - a[1]) / (self.params.resolution_m / 2.0)) + 2
         xs, ys = np.linspace(a[0], b[0], n), np.linspace(a[1], b[1], n)
         res = self.params.resolution_m
@@ -174,18 +205,32 @@ class GridExplorer:
             self.update(pose, scan)
         p = self.params
         stale = self._frontier_cell is None or not self.frontier_cells()[self._frontier_cell]
+        if self._arrived and not stale and self._frontier_cell is not None:
+            # Looked at it from its goal and it is still a frontier: nothing more to see there.
+            ci, cj = self._frontier_cell
+            self._ignored[max(ci - 1, 0) : ci + 2, max(cj - 1, 0) : cj + 2] = True
         if not self._path or stale or self._arrived:
             if not self._plan(pose):
                 self.done = True
                 return None
         here = (pose.x_m, pose.y_m)
-        # Drop reached path points, then aim at the farthest visible one within the lookahead.
-        while len(self._path) > 1 and math.hypot(self._path[0][0] - here[0], self._path[0][1] - here[1]) < p.goal_reached_m:
+        # Drop the path up to the point nearest the vehicle, then aim at the farthest point
+        # within the lookahead that a straight line reaches.
+        pts = np.asarray(self._path)
+        nearest = int(np.argmin(np.hypot(pts[:, 0] - here[0], pts[:, 1] - here[1])))
+        del self._path[:nearest]
+        passable = self._passable(pose)
+        if (
+            len(self._path) > 1
+            and math.hypot(self._path[0][0] - here[0], self._path[0][1] - here[1])
+            < p.goal_reached_m
+        ):
             self._path.pop(0)
-        passable = self._passable()
         carrot = self._path[0]
         for q in self._path[1:]:
-            if math.hypot(q[0] - here[0], q[1] - here[1]) > p.lookahead_m or not self._visible(here, q, passable):
+            if math.hypot(q[0] - here[0], q[1] - here[1]) > p.lookahead_m or not self._visible(
+                here, q, passable
+            ):
                 break
             carrot = q
         final = carrot == self._path[-1]

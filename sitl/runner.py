@@ -75,7 +75,12 @@ class GridPolicy:
         return sp
 
     def summary(self) -> dict[str, Any]:
-        return {"keyframes": 0, "loop_closures": 0, "frontiers_left": int(self.explorer.frontier_cells().sum()), "frontiers_set_aside": 0}
+        return {
+            "keyframes": 0,
+            "loop_closures": 0,
+            "frontiers_left": int(self.explorer.frontier_cells().sum()),
+            "frontiers_set_aside": 0,
+        }
 
 
 @dataclass
@@ -111,7 +116,13 @@ def run_exploration(
     base = sim_params or SimParams()
     scale = 0.0 if planner == "grid" else noise_scale  # the baseline has perfect poses
     d = base.drift
-    params = SimParams(base.sensor, base.vehicle, DriftParams(d.sigma_xy_m, d.sigma_yaw_rad, d.step_m, scale), base.slam, base.physics_rate_hz)
+    params = SimParams(
+        base.sensor,
+        base.vehicle,
+        DriftParams(d.sigma_xy_m, d.sigma_yaw_rad, d.step_m, scale),
+        base.slam,
+        base.physics_rate_hz,
+    )
     sim = Simulation(world, params, seed)
     policy: Policy = PolygonPolicy(explorer_params) if planner == "polygon" else GridPolicy(world)
     coverage = CoverageGrid(world)

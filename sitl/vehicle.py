@@ -45,7 +45,10 @@ class Vehicle:
         else:
             ex, ey = target.x_m - est.x_m, target.y_m - est.y_m
             # The error as the autopilot sees it, flown in the true world.
-            c, s = math.cos(self.true_pose.yaw_rad - est.yaw_rad), math.sin(self.true_pose.yaw_rad - est.yaw_rad)
+            c, s = (
+                math.cos(self.true_pose.yaw_rad - est.yaw_rad),
+                math.sin(self.true_pose.yaw_rad - est.yaw_rad),
+            )
             err = np.array([c * ex - s * ey, s * ex + c * ey])
             dist = float(np.hypot(*err))
             speed = min(p.max_speed_mps, math.sqrt(2.0 * p.max_accel_mps2 * dist) * 0.9, 2.0 * dist)

@@ -151,7 +151,10 @@ class Explorer:
         for closure in self._pending_closures:
             if newest is not None and closure.current_stamp_s <= newest + 1e-6:
                 self._apply_loop_closure(closure)
-            elif newest is None or closure.current_stamp_s - newest < self.params.loop_closure_max_gap_s:
+            elif (
+                newest is None
+                or closure.current_stamp_s - newest < self.params.loop_closure_max_gap_s
+            ):
                 keep.append(closure)
             else:
                 self.loop_closures_rejected += 1

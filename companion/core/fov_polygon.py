@@ -117,6 +117,13 @@ def _insert_occlusions(
     """
     ranges = ranges.copy()
     frontier = frontier.copy()
+    # A lone ray much longer than both neighbours would make a zero-width spike (out and back
+    # along one bearing): cut it to the longer neighbour, as unknown beyond.
+    if ranges.size >= 3:
+        longer = np.maximum(ranges[:-2], ranges[2:])
+        spike = np.flatnonzero(ranges[1:-1] - longer > threshold_m) + 1
+        ranges[spike] = longer[spike - 1]
+        frontier[spike] = True
     # A jump at either end ray would leave a zero-width spike along that ray (the polygon returns
     # to the origin along it): cut the end ray back to its neighbour's range, as unknown.
     for end, inner in ((0, 1), (-1, -2)):

@@ -1,0 +1,140 @@
+"""``companion`` command line: ``companion sim`` runs an exploration in the simulator in-process."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn
+
+from sitl.errors import SitlError
+from sitl.runner import PLANNERS, RunTrace, run_exploration
+from sitl.world import World, load_world
+
+
+def _positive(kind: type[float] | type[int]):  # type: ignore[no-untyped-def]
+    def parse(text: str) -> float | int:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if value < 0:
+            raise argparse.ArgumentTypeError(f"must not be negative, got {text}")
+        return value
+
+    return parse
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="companion", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    sim = sub.add_parser("sim", help="explore a map with the in-process simulated vehicle")
+    sim.add_argument(
+        "--map", required=True, type=Path, help="GeoJSON map (see config/maps/README.md)"
+    )
+    sim.add_argument("--planner", choices=PLANNERS, default="polygon")
+    sim.add_argument("--seed", type=int, default=1)
+    sim.add_argument(
+        "--noise-scale",
+        type=_positive(float),
+        default=1.0,
+        help="odometry drift scale (0 = perfect)",
+    )
+    sim.add_argument(
+        "--max-time",
+        type=_positive(float),
+        default=1800.0,
+        help="simulated seconds before timing out",
+    )
+    sim.add_argument("--report", type=Path, help="write the JSON report here")
+    sim.add_argument("--plots", type=Path, help="write PNG figures into this folder")
+    sim.add_argument(
+        "--no-baseline", action="store_true", help="with --plots: skip the grid baseline run"
+    )
+    sim.add_argument("--quiet", action="store_true", help="no progress display")
+    return parser
+
+
+def _explore(world: World, args: argparse.Namespace, planner: str, console: Console) -> RunTrace:
+    if args.quiet:
+        return run_exploration(
+            world, planner, args.seed, args.noise_scale, args.max_time, map_label=str(args.map)
+        )
+    with Progress(
+        TextColumn(f"[bold]{planner}[/] {world.name}"),
+        BarColumn(),
+        TextColumn("coverage {task.fields[coverage]:5.1%}  sim {task.fields[sim_s]:6.0f} s"),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("explore", total=1.0, coverage=0.0, sim_s=0.0)
+
+        def progress(sim_s: float, coverage: float) -> None:
+            bar.update(task, completed=coverage, coverage=coverage, sim_s=sim_s)
+
+        return run_exploration(
+            world,
+            planner,
+            args.seed,
+            args.noise_scale,
+            args.max_time,
+            progress=progress,
+            map_label=str(args.map),
+        )
+
+
+def _sim(args: argparse.Namespace, console: Console) -> int:
+    world = load_world(args.map)
+    trace = _explore(world, args, args.planner, console)
+    r = trace.report
+    console.print(
+        f"{r['planner']} on {world.name}: termination [bold]{r['termination']}[/], coverage {r['coverage']:.3f}, "
+        f"time {r['exploration_time_s']:.1f} s (99% at {r['time_to_99_s']} s), path {r['path_length_m']:.1f} m, "
+        f"collisions {r['collisions']}, keyframes {r['keyframes']}, loop closures {r['loop_closures']}, "
+        f"step p50/p99 {r['step_ms']['p50']:.2f}/{r['step_ms']['p99']:.2f} ms"
+    )
+    if args.report:
+        args.report.parent.mkdir(parents=True, exist_ok=True)
+        args.report.write_text(json.dumps(r, indent=2) + "\n")
+        console.print(f"report: {args.report}")
+    if args.plots:
+        from sitl.plots import write_plots  # matplotlib only when asked for
+
+        baseline = None
+        if args.planner == "polygon" and not args.no_baseline:
+            baseline = _explore(world, args, "grid", console)
+            b = baseline.report
+            console.print(
+                f"grid baseline: {b['termination']}, coverage {b['coverage']:.3f}, time {b['exploration_time_s']:.1f} s "
+                f"-> time ratio polygon/grid {r['exploration_time_s'] / max(b['exploration_time_s'], 1e-9):.2f}"
+            )
+        for path in write_plots(world, trace, args.plots, baseline):
+            console.print(f"plot: {path}")
+    return (
+        0
+        if r["termination"] in ("complete", "unreachable_frontiers_left") and r["collisions"] == 0
+        else 1
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    console = Console(stderr=False)
+    err = Console(stderr=True)
+    try:
+        if args.command == "sim":
+            return _sim(args, console)
+    except SitlError as exc:
+        err.print(f"[red]error:[/] {exc}")
+        return 2
+    except KeyboardInterrupt:
+        err.print("interrupted")
+        return 130
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+import math
+
+import numpy as np
+import pytest
+import shapely
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.core.errors import ScanError
+from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
+from companion.core.messages import DepthScan
+
+BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
+
+
+def scan(ranges, bearings=BEARINGS, max_range=5.0):
+    return DepthScan(0.0, bearings, np.asarray(ranges, dtype=float), max_range)
+
+
+def test_open_space_gives_frontier_arc_and_origin_first():
+    poly = scan_to_polygon(scan(np.full(64, 5.0)))
+    assert poly.has_origin and np.allclose(poly.vertices_xy[0], 0.0)
+    arc = np.linalg.norm(poly.vertices_xy, axis=1) > 4.9
+    assert arc.any() and np.all(poly.kinds[arc] == VertexKind.FRONTIER)
+    assert poly.obstacle_segments().shape[0] == 0
+
+
+def test_wall_returns_are_obstacle_vertices():
+    poly = scan_to_polygon(scan(np.full(64, 2.0)))
+    ranges = np.linalg.norm(poly.vertices_xy, axis=1)
+    on_wall = np.isclose(ranges, 2.0)
+    assert on_wall.sum() >= 2 and np.all(poly.kinds[on_wall] == VertexKind.OBSTACLE)
+    assert poly.obstacle_segments().shape[0] >= 1
+
+
+def test_occlusion_inserts_frontier_on_the_far_ray_at_the_near_range():
+    r = np.full(64, 4.0)
+    r[30:] = 1.5  # a near object covering the left half
+    poly = scan_to_polygon(scan(r), PolygonParams(min_vertex_spacing_m=0.0, side_frontier_spacing_m=0.0))
+    inserted = [
+        i for i, v in enumerate(poly.vertices_xy)
+        if poly.kinds[i] == VertexKind.FRONTIER and np.isclose(np.hypot(*v), 1.5)
+    ]
+    assert len(inserted) == 1
+    # The shadow behind the near object (far range on the near ray) is not claimed as free.
+    shadow = 3.0 * np.array([math.cos(BEARINGS[30]), math.sin(BEARINGS[30])])
+    assert not poly.shape.contains(shapely.Point(shadow))
+
+
+def test_invalid_returns_never_become_walls_at_zero():
+    r = np.full(64, 3.0)
+    r[10] = np.nan
+    r[11] = -1.0
+    r[12:20] = np.inf
+    poly = scan_to_polygon(scan(r), PolygonParams(min_vertex_spacing_m=0.0, side_frontier_spacing_m=0.0))
+    ranges = np.linalg.norm(poly.vertices_xy[1:], axis=1)
+    assert ranges.min() >= 0.1 - 1e-9
+    # no-return ray becomes a frontier at max range
+    assert np.any(np.isclose(ranges, 5.0) & (poly.kinds[1:] == VertexKind.FRONTIER))
+
+
+def test_subsampling_keeps_fewer_vertices_but_all_kind_changes():
+    r = np.full(64, 5.0)
+    r[20:40] = 2.0
+    dense = scan_to_polygon(scan(r), PolygonParams(min_vertex_spacing_m=0.0))
+    sparse = scan_to_polygon(scan(r), PolygonParams(min_vertex_spacing_m=0.5))
+    assert sparse.size < dense.size
+    assert np.count_nonzero(np.diff(sparse.kinds[1:]) != 0) == np.count_nonzero(np.diff(dense.kinds[1:]) != 0)
+
+
+@pytest.mark.parametrize(
+    "bearings",
+    [np.array([0.0]), np.array([0.0, 0.0, 0.1]), np.linspace(0, 7, 10), np.array([0.0, np.nan])],
+)
+def test_malformed_bearings_are_rejected(bearings):
+    with pytest.raises(ScanError):
+        DepthScan(0.0, bearings, np.ones_like(bearings), 5.0)
+
+
+def test_full_turn_scan_has_no_origin_vertex():
+    b = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    poly = scan_to_polygon(DepthScan(0.0, b, np.full(360, 3.0), 5.0))
+    assert not poly.has_origin
+    assert poly.shape.contains(shapely.Point(0.0, 0.0))
+
+
+ranges_st = st.lists(
+    st.one_of(st.floats(0.0, 6.0), st.just(float("nan")), st.just(float("inf")), st.just(-1.0)), min_size=8, max_size=80
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(ranges_st, st.floats(0.3, 3.1))
+def test_random_scans_give_valid_polygons_that_hold_their_origin(ranges, fov):
+    b = np.linspace(-fov / 2, fov / 2, len(ranges))
+    poly = scan_to_polygon(DepthScan(0.0, b, np.array(ranges), 5.0))
+    assert poly.shape.is_valid
+    assert poly.shape.covers(shapely.Point(0.0, 0.0))
+    assert poly.kinds.shape[0] == poly.vertices_xy.shape[0]
+    assert np.all(np.linalg.norm(poly.vertices_xy, axis=1) <= 5.0 + 1e-9)

@@ -1,0 +1,39 @@
+import math
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from companion.core.geometry import Pose2, wrap_angle
+
+coord = st.floats(-100, 100, allow_nan=False)
+angle = st.floats(-10, 10, allow_nan=False)
+poses = st.builds(Pose2, coord, coord, angle)
+
+
+def test_wrap_angle_maps_into_half_open_interval():
+    assert wrap_angle(math.pi) == -math.pi
+    assert math.isclose(wrap_angle(3 * math.pi / 2), -math.pi / 2)
+    assert math.isclose(wrap_angle(-0.1), -0.1)
+
+
+def test_compose_translates_in_the_parent_frame():
+    a = Pose2(1.0, 2.0, math.pi / 2)
+    b = Pose2(1.0, 0.0, 0.0)
+    c = a @ b
+    assert math.isclose(c.x_m, 1.0, abs_tol=1e-12) and math.isclose(c.y_m, 3.0)
+    assert math.isclose(c.yaw_rad, math.pi / 2)
+
+
+@given(poses, poses)
+def test_between_then_compose_round_trips(a, b):
+    c = a @ a.between(b)
+    assert math.isclose(c.x_m, b.x_m, abs_tol=1e-6) and math.isclose(c.y_m, b.y_m, abs_tol=1e-6)
+    assert abs(wrap_angle(c.yaw_rad - b.yaw_rad)) < 1e-9
+
+
+@given(poses)
+def test_inverse_undoes_apply(a):
+    pts = np.array([[0.0, 0.0], [1.5, -2.0], [10.0, 3.0]])
+    back = a.inverse().apply(a.apply(pts))
+    assert np.allclose(back, pts, atol=1e-6)
