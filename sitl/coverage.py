@@ -71,7 +71,7 @@ class CoverageGrid:
         self.spec = GridSpec.covering(world, resolution_m)
         s = self.spec
         centres = s.centres()
-        half = resolution_m / 2.0
+        half = resolution_m / 2.0 * 0.99  # a wall along a cell border does not cross the cell
         boxes = shapely.box(
             centres[:, 0] - half, centres[:, 1] - half, centres[:, 0] + half, centres[:, 1] + half
         )

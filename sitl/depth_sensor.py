@@ -29,6 +29,8 @@ def cast_rays(
     origin_xy: FloatArray, angles_rad: FloatArray, walls: FloatArray, max_range_m: float
 ) -> FloatArray:
     """Distance along each ray (world angles) to the first wall, ``inf`` when none within range."""
+    if walls.shape[0] == 0:
+        return np.full(np.shape(angles_rad), np.inf)
     d = np.column_stack((np.cos(angles_rad), np.sin(angles_rad)))  # (R, 2)
     a = walls[:, 0, :]  # (M, 2)
     e = walls[:, 1, :] - a  # (M, 2)

@@ -12,9 +12,11 @@ import bisect
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from companion.core.errors import CoreError
 from companion.core.fov_polygon import PolygonParams, scan_to_polygon
-from companion.core.geometry import Pose2, wrap_angle
+from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
@@ -101,6 +103,7 @@ class Explorer:
         self._last_odom: Odometry | None = None
         self._last_mode = Mode.EXPLORING
         self._pending_closures: list[LoopClosure] = []
+        self._live: tuple[Pose2, FloatArray] | None = None  # newest scan: its pose and returns
 
     @property
     def mode(self) -> Mode:
@@ -117,13 +120,18 @@ class Explorer:
             self._apply_pending_closures()
         added = False
         if scan is not None:
+            self._live = (self.history.at(scan.stamp_s) or odom.pose, _returns_xy(scan))
             added = self._maybe_add_keyframe(scan, odom)
         if self.current_id is None:
             hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
             decision = Decision(Mode.EXPLORING, Target(hold.x_m, hold.y_m, hold.yaw_rad))
             return StepResult(hold, Mode.EXPLORING, added, decision)
         vehicle = self.anchor.between(odom.pose)
-        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s)
+        live = None
+        if self._live is not None:
+            pose_at_scan, returns = self._live
+            live = self.anchor.between(pose_at_scan).apply(returns)
+        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s, live)
         if decision.relocalize_to is not None and decision.relocalize_to != self.current_id:
             rel = self.map.pose_in(self.current_id, decision.relocalize_to)
             self.anchor = self.anchor.compose(rel)
@@ -234,3 +242,12 @@ class Explorer:
         self.anchor = pose
         self._want_keyframe = False
         return True
+
+
+def _returns_xy(scan: DepthScan) -> FloatArray:
+    """The scan's obstacle returns (finite, within range) as body-frame points."""
+    r = scan.ranges_m
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & (r >= scan.min_range_m) & (r < scan.max_range_m - 0.02)
+    b = scan.bearings_rad[ok]
+    return np.column_stack((r[ok] * np.cos(b), r[ok] * np.sin(b)))

@@ -113,11 +113,25 @@ class FrontierPlanner:
     route: _Route | None = None
     attempts: dict[FrontierKey, int] = field(default_factory=dict)
     set_aside: set[FrontierKey] = field(default_factory=set)
+    _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
-    def plan(self, local_map: LocalMap, frame_id: int, vehicle: Pose2, stamp_s: float) -> Decision:
-        """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame)."""
+    def plan(
+        self,
+        local_map: LocalMap,
+        frame_id: int,
+        vehicle: Pose2,
+        stamp_s: float,
+        live_obstacles_xy: FloatArray | None = None,
+    ) -> Decision:
+        """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame).
+
+        ``live_obstacles_xy`` are the newest scan's returns in the same frame: every path is also
+        checked against them (thesis 2.9.2: the current view must not head into an obstacle), so a
+        drifted neighbour view can never clear a path the sensor sees blocked now.
+        """
         view = local_map.view(frame_id)
         here = np.array([vehicle.x_m, vehicle.y_m])
+        self._live = np.zeros((0, 2)) if live_obstacles_xy is None else live_obstacles_xy
         required = self._required_clearance(view, here)
 
         if self.goal is not None:
@@ -261,9 +275,11 @@ class FrontierPlanner:
     def _required_clearance(self, view: LocalView, here: FloatArray) -> float:
         """The clearance a path must keep: the configured one, or (when the vehicle is already
         closer to a wall) nearly what it has now, so it can always move away."""
-        if view.obstacles.is_empty:
-            return self.params.clearance_m
-        now = float(shapely.distance(shapely.Point(here), view.obstacles))
+        now = math.inf
+        if not view.obstacles.is_empty:
+            now = float(shapely.distance(shapely.Point(here), view.obstacles))
+        if self._live.shape[0]:
+            now = min(now, float(np.min(np.hypot(*(self._live - here).T))))
         return min(self.params.clearance_m, 0.9 * now)
 
     def _accessible(
@@ -273,7 +289,13 @@ class FrontierPlanner:
         if float(np.hypot(*(goal - start))) < 1e-6:
             return bool(shapely.contains_xy(view.grown, goal[0], goal[1]))
         path = shapely.LineString([start, goal])
-        if not view.grown.covers(path):
+        # The vehicle's own spot is free by its presence (it may sit on a polygon's corner, as at a
+        # keyframe's origin): the part that must lie in known free space starts a little along.
+        length = float(np.hypot(*(goal - start)))
+        lead = start + (goal - start) * min(0.05 / length, 0.5)
+        if not view.grown.covers(shapely.LineString([lead, goal])):
+            return False
+        if self._live.shape[0] and _segment_clearance(start, goal, self._live) < required:
             return False
         if view.obstacles.is_empty:
             return True
@@ -324,6 +346,13 @@ class FrontierPlanner:
                 break
         pose = local_map.pose_in(frame_id, nxt)
         wp = np.array([pose.x_m, pose.y_m])
+        if self._live.shape[0] and _segment_clearance(here, wp, self._live) < required:
+            # The sensor sees this leg blocked now (a drifted or loop-closure leg cutting a
+            # corner): give up this route rather than fly it; its frontiers count a failed try.
+            for i in targetable_indices(local_map.keyframes[route.target_keyframe], self.params.min_frontier_size_m):
+                self._failed(FrontierKey(route.target_keyframe, int(i)))
+            self.route = None
+            return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         if float(np.hypot(*(wp - here))) <= self.params.waypoint_reached_m:
             if len(route.keyframes) > 1:
                 route.keyframes.pop(0)
@@ -365,3 +394,12 @@ class FrontierPlanner:
         if abs(wrap_angle(travel - vehicle.yaw_rad)) > self.params.turn_first_rad:
             return Decision(mode, Target(vehicle.x_m, vehicle.y_m, travel), key)
         return Decision(mode, Target(float(goal_xy[0]), float(goal_xy[1]), travel), key)
+
+
+def _segment_clearance(a: FloatArray, b: FloatArray, points_xy: FloatArray) -> float:
+    """Smallest distance from the segment a-b to any of the points."""
+    ab = b - a
+    denom = max(float(ab @ ab), 1e-12)
+    t = np.clip((points_xy - a) @ ab / denom, 0.0, 1.0)
+    d = points_xy - (a + t[:, None] * ab)
+    return float(np.min(np.hypot(d[:, 0], d[:, 1])))

@@ -1,0 +1,78 @@
+"""End-to-end explorations in the in-process simulator (seeded)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from companion.cli import main
+from companion.core.explorer import Explorer
+from companion.core.geometry import Pose2
+from companion.core.messages import DepthScan, LoopClosure, Odometry
+from sitl.runner import run_exploration
+from sitl.world import load_world
+
+BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_polygon_explorer_covers_a_small_room_with_drift(small_room, seed):
+    r = run_exploration(load_world(small_room), "polygon", seed=seed, noise_scale=1.0, max_time_s=600).report
+    assert r["collisions"] == 0
+    assert r["coverage"] >= 0.99
+    assert r["termination"] in ("complete", "unreachable_frontiers_left")
+    assert r["keyframes"] > 3
+
+
+def test_polygon_explorer_finds_the_room_behind_the_door(two_rooms):
+    trace = run_exploration(load_world(two_rooms), "polygon", seed=4, noise_scale=1.0, max_time_s=900)
+    assert trace.report["collisions"] == 0
+    assert trace.report["coverage"] >= 0.99
+    assert max(p.x_m for p in trace.true_path) > 5.5  # it went through the door
+
+
+def test_explorer_turns_a_loop_closure_into_a_graph_edge():
+    ex = Explorer()
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    for i in range(6):
+        t = float(i)
+        ex.step(Odometry(t, Pose2(1.2 * i, 0.0, 0.0)), scan(t))
+    assert len(ex.map) == 6
+    edges = len(ex.map.graph.edges)
+    ex.add_loop_closure(LoopClosure(0.0, 5.0, Pose2(6.0, 0.1, 0.0)))
+    assert len(ex.map.graph.edges) == edges + 1
+    assert ex.map.loop_closures == 1
+    # A closure from the future waits for odometry to reach it, then applies.
+    ex.add_loop_closure(LoopClosure(1.0, 6.0, Pose2(6.0, 0.0, 0.0)))
+    assert ex.map.loop_closures == 1
+    ex.step(Odometry(6.0, Pose2(7.2, 0.0, 0.0)), scan(6.0))
+    assert ex.map.loop_closures == 2
+
+
+def test_estimator_reset_keeps_setpoints_continuous():
+    ex = Explorer()
+    scan = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+    before = ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0), reset_counter=0), scan).setpoint
+    # The estimator jumps by +10 m in x; the vehicle did not move.
+    after = ex.step(Odometry(0.1, Pose2(10.0, 0.0, 0.0), reset_counter=1)).setpoint
+    assert math.isclose(after.x_m - before.x_m, 10.0, abs_tol=0.3)
+
+
+def test_cli_sim_writes_the_report_with_the_documented_fields(small_room, tmp_path):
+    out = tmp_path / "report.json"
+    rc = main(["sim", "--map", str(small_room), "--seed", "1", "--max-time", "600", "--report", str(out), "--quiet"])
+    assert rc == 0
+    r = json.loads(out.read_text())
+    for key in ("map", "planner", "seed", "coverage", "exploration_time_s", "time_to_99_s", "path_length_m",
+                "collisions", "termination", "keyframes", "loop_closures", "frontiers_left", "step_ms"):
+        assert key in r
+    assert set(r["step_ms"]) >= {"p50", "p99"}
+
+
+def test_cli_reports_a_bad_map_without_a_traceback(tmp_path, capsys):
+    bad = tmp_path / "bad.geojson"
+    bad.write_text("{")
+    assert main(["sim", "--map", str(bad), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "bad.geojson" in captured.out + captured.err

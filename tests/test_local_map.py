@@ -1,0 +1,83 @@
+import math
+
+import numpy as np
+import shapely
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.core.fov_polygon import VertexKind, scan_to_polygon
+from companion.core.geometry import Pose2
+from companion.core.local_map import LocalMap
+from companion.core.messages import DepthScan
+
+BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
+
+
+def open_scan(range_m: float = 5.0) -> DepthScan:
+    return DepthScan(0.0, BEARINGS, np.full(64, range_m), 5.0)
+
+
+def add_pose(m: LocalMap, pose: Pose2, prev: tuple[int, Pose2] | None, scan: DepthScan | None = None):
+    parent = None if prev is None else (prev[0], prev[1].between(pose))
+    kf = m.add_keyframe(0.0, pose, scan_to_polygon(scan or open_scan()), parent)
+    return kf.keyframe_id, pose
+
+
+def test_a_view_surrounded_by_earlier_views_leaves_no_open_frontier():
+    m = LocalMap()
+    prev = None
+    # Four views from one spot, each turned 90 degrees, all short of max range except the last.
+    for k in range(4):
+        prev = add_pose(m, Pose2(0, 0, k * math.pi / 2), prev, open_scan(3.0) if k < 3 else open_scan(5.0))
+    # Then a view from just behind that sees past the first ring in the same direction.
+    last_id, _ = add_pose(m, Pose2(-0.5, 0, 3 * math.pi / 2), prev, open_scan(3.0))
+    inner = m.keyframes[last_id]
+    assert np.count_nonzero(inner.kinds == VertexKind.FRONTIER) < np.count_nonzero(inner.polygon.kinds == VertexKind.FRONTIER)
+
+
+def test_frontier_seen_past_by_a_later_view_is_closed():
+    m = LocalMap()
+    a = add_pose(m, Pose2(0, 0, 0), None)
+    b = add_pose(m, Pose2(3.0, 0, 0), a)  # 3 m further along: sees past a's arc ahead
+    kf_a = m.keyframes[a[0]]
+    ahead = (kf_a.polygon.vertices_xy[:, 0] > 4.5) & (np.abs(kf_a.polygon.vertices_xy[:, 1]) < 1.0)
+    assert ahead.any()
+    assert np.all(kf_a.kinds[ahead] == VertexKind.FREE)
+    assert np.any(m.keyframes[b[0]].kinds == VertexKind.FRONTIER)  # b's own arc is still open
+
+
+def test_loop_closure_only_adds_an_edge_and_never_moves_a_vertex():
+    m = LocalMap()
+    prev = None
+    for k in range(6):
+        prev = add_pose(m, Pose2(k * 1.0, 0.0, 0.0), prev)
+    before = {k: kf.polygon.vertices_xy.copy() for k, kf in m.keyframes.items()}
+    edges = len(m.graph.edges)
+    m.add_loop_closure(0, 5, Pose2(5.0, 0.0, 0.0))
+    assert len(m.graph.edges) == edges + 1 and m.loop_closures == 1
+    for k, kf in m.keyframes.items():
+        assert np.array_equal(kf.polygon.vertices_xy, before[k])
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.2, 2.0), st.floats(-1.0, 1.0)), min_size=2, max_size=12))
+def test_neighbourhood_holds_only_views_overlapping_the_keyframe(steps):
+    m = LocalMap()
+    pose = Pose2()
+    prev = add_pose(m, pose, None)
+    for dist, turn in steps:
+        pose = pose @ Pose2(dist, 0.0, turn)
+        prev = add_pose(m, pose, prev)
+    for k in m.keyframes:
+        shape = m.keyframes[k].polygon.shape
+        for other, rel in m.neighbourhood(k).items():
+            moved = shapely.affinity.affine_transform(m.keyframes[other].polygon.shape, rel.affine())
+            assert shape.intersects(moved)
+
+
+def test_far_apart_views_are_not_neighbours():
+    m = LocalMap()
+    a = add_pose(m, Pose2(0, 0, 0), None)
+    b = add_pose(m, Pose2(20.0, 0, 0), a)
+    assert m.neighbourhood(b[0]) == {}
+    assert m.graph.relative(a[0], b[0]).x_m == 20.0
