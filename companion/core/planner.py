@@ -40,7 +40,7 @@ class PlannerParams:
     """Tuning of the frontier planner; distances in metres, angles in radians, times in seconds."""
 
     body_radius_m: float = 0.25
-    clearance_margin_m: float = 0.25
+    clearance_margin_m: float = 0.15
     standoff_m: float = 1.0
     min_frontier_size_m: float = 0.3
     max_candidates_checked: int = 24
