@@ -32,9 +32,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="companion", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     sim = sub.add_parser("sim", help="explore a map with the in-process simulated vehicle")
-    sim.add_argument(
-        "--map", required=True, type=Path, help="GeoJSON map (see config/maps/README.md)"
-    )
+    sim.add_argument("--map", required=True, type=Path, help="GeoJSON map (see config/maps/README.md)")
     sim.add_argument("--planner", choices=PLANNERS, default="polygon")
     sim.add_argument("--seed", type=int, default=1)
     sim.add_argument(
@@ -51,18 +49,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--report", type=Path, help="write the JSON report here")
     sim.add_argument("--plots", type=Path, help="write PNG figures into this folder")
-    sim.add_argument(
-        "--no-baseline", action="store_true", help="with --plots: skip the grid baseline run"
-    )
+    sim.add_argument("--no-baseline", action="store_true", help="with --plots: skip the grid baseline run")
     sim.add_argument("--quiet", action="store_true", help="no progress display")
     return parser
 
 
 def _explore(world: World, args: argparse.Namespace, planner: str, console: Console) -> RunTrace:
     if args.quiet:
-        return run_exploration(
-            world, planner, args.seed, args.noise_scale, args.max_time, map_label=str(args.map)
-        )
+        return run_exploration(world, planner, args.seed, args.noise_scale, args.max_time, map_label=str(args.map))
     with Progress(
         TextColumn(f"[bold]{planner}[/] {world.name}"),
         BarColumn(),
@@ -113,11 +107,7 @@ def _sim(args: argparse.Namespace, console: Console) -> int:
             )
         for path in write_plots(world, trace, args.plots, baseline):
             console.print(f"plot: {path}")
-    return (
-        0
-        if r["termination"] in ("complete", "unreachable_frontiers_left") and r["collisions"] == 0
-        else 1
-    )
+    return 0 if r["termination"] in ("complete", "unreachable_frontiers_left") and r["collisions"] == 0 else 1
 
 
 def main(argv: list[str] | None = None) -> int:

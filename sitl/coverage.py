@@ -72,9 +72,7 @@ class CoverageGrid:
         s = self.spec
         centres = s.centres()
         half = resolution_m / 2.0 * 0.99  # a wall along a cell border does not cross the cell
-        boxes = shapely.box(
-            centres[:, 0] - half, centres[:, 1] - half, centres[:, 0] + half, centres[:, 1] + half
-        )
+        boxes = shapely.box(centres[:, 0] - half, centres[:, 1] - half, centres[:, 0] + half, centres[:, 1] + half)
         walls = shapely.multilinestrings(shapely.linestrings(world.walls))
         crossed = shapely.intersects(boxes, walls)
         inside = shapely.contains_xy(world.free, centres[:, 0], centres[:, 1])

@@ -25,9 +25,7 @@ class SensorParams:
         return np.linspace(-half, half, self.rays)
 
 
-def cast_rays(
-    origin_xy: FloatArray, angles_rad: FloatArray, walls: FloatArray, max_range_m: float
-) -> FloatArray:
+def cast_rays(origin_xy: FloatArray, angles_rad: FloatArray, walls: FloatArray, max_range_m: float) -> FloatArray:
     """Distance along each ray (world angles) to the first wall, ``inf`` when none within range."""
     if walls.shape[0] == 0:
         return np.full(np.shape(angles_rad), np.inf)

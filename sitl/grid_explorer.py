@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.core.geometry import FloatArray, Pose2, wrap_angle
+from companion.core.geometry import Pose2, wrap_angle
 from companion.core.messages import DepthScan, Setpoint
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
@@ -54,9 +54,7 @@ def dilate(mask: NDArray[np.bool_], radius_cells: int) -> NDArray[np.bool_]:
 class GridExplorer:
     """Occupancy grid + nearest-frontier planner; ``step`` takes the true pose."""
 
-    def __init__(
-        self, bounds: tuple[float, float, float, float], params: GridExplorerParams | None = None
-    ) -> None:
+    def __init__(self, bounds: tuple[float, float, float, float], params: GridExplorerParams | None = None) -> None:
         self.params = params or GridExplorerParams()
         res = self.params.resolution_m
         minx, miny, maxx, maxy = bounds
@@ -189,9 +187,7 @@ class GridExplorer:
         self._arrived = False
         return True
 
-    def _visible(
-        self, a: tuple[float, float], b: tuple[float, float], passable: NDArray[np.bool_]
-    ) -> bool:
+    def _visible(self, a: tuple[float, float], b: tuple[float, float], passable: NDArray[np.bool_]) -> bool:
         n = int(math.hypot(b[0] - a[0], b[1] - a[1]) / (self.params.resolution_m / 2.0)) + 2
         xs, ys = np.linspace(a[0], b[0], n), np.linspace(a[1], b[1], n)
         res = self.params.resolution_m
@@ -222,15 +218,12 @@ class GridExplorer:
         passable = self._passable(pose)
         if (
             len(self._path) > 1
-            and math.hypot(self._path[0][0] - here[0], self._path[0][1] - here[1])
-            < p.goal_reached_m
+            and math.hypot(self._path[0][0] - here[0], self._path[0][1] - here[1]) < p.goal_reached_m
         ):
             self._path.pop(0)
         carrot = self._path[0]
         for q in self._path[1:]:
-            if math.hypot(q[0] - here[0], q[1] - here[1]) > p.lookahead_m or not self._visible(
-                here, q, passable
-            ):
+            if math.hypot(q[0] - here[0], q[1] - here[1]) > p.lookahead_m or not self._visible(here, q, passable):
                 break
             carrot = q
         final = carrot == self._path[-1]

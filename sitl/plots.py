@@ -7,13 +7,13 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from companion.core.fov_polygon import VertexKind  # noqa: E402
-from companion.core.pose_graph import EdgeType  # noqa: E402
-from sitl.runner import PolygonPolicy, RunTrace  # noqa: E402
-from sitl.world import World  # noqa: E402
+from companion.core.fov_polygon import VertexKind
+from companion.core.pose_graph import EdgeType
+from sitl.runner import PolygonPolicy, RunTrace
+from sitl.world import World
 
 
 def _draw_world(ax: plt.Axes, world: World) -> None:
@@ -22,9 +22,7 @@ def _draw_world(ax: plt.Axes, world: World) -> None:
     ax.set_aspect("equal")
 
 
-def write_plots(
-    world: World, trace: RunTrace, out_dir: Path, baseline: RunTrace | None = None
-) -> list[Path]:
+def write_plots(world: World, trace: RunTrace, out_dir: Path, baseline: RunTrace | None = None) -> list[Path]:
     """Write the map, trajectory, coverage, pose-graph and coverage-over-time figures."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -54,9 +52,7 @@ def _map_figure(world: World, trace: RunTrace, policy: PolygonPolicy, path: Path
         fr = kf.kinds == VertexKind.FRONTIER
         ax.scatter(v[ob, 0], v[ob, 1], s=2, color="tab:red")
         ax.scatter(v[fr, 0], v[fr, 1], s=6, color="tab:blue")
-    ax.set_title(
-        f"{world.name}: keyframe polygons at true poses; obstacle (red), open frontier (blue)"
-    )
+    ax.set_title(f"{world.name}: keyframe polygons at true poses; obstacle (red), open frontier (blue)")
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path

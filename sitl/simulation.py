@@ -64,9 +64,7 @@ class Simulation:
         v = self.vehicle
         scan = self.sensor.scan(v.true_pose, self.time_s)
         closure = self.slam.observe(self.time_s, v.true_pose)
-        return SensorFrame(
-            self.time_s, Odometry(self.time_s, v.estimate), scan, closure, v.true_pose
-        )
+        return SensorFrame(self.time_s, Odometry(self.time_s, v.estimate), scan, closure, v.true_pose)
 
     def advance(self, target: Pose2 | None) -> SensorFrame:
         """Fly towards ``target`` (estimate frame) until the next sensor tick, then sense."""

@@ -60,11 +60,7 @@ class SimulatedSlam:
         yaw = np.array([q.yaw_rad for q in self._poses])
         d = np.hypot(xy[:, 0] - pose.x_m, xy[:, 1] - pose.y_m)
         dyaw = np.abs((yaw - pose.yaw_rad + np.pi) % (2 * np.pi) - np.pi)
-        ok = (
-            (d <= p.range_m)
-            & (self._travel_m - travel >= p.min_travel_between_m)
-            & (dyaw <= p.max_yaw_difference_rad)
-        )
+        ok = (d <= p.range_m) & (self._travel_m - travel >= p.min_travel_between_m) & (dyaw <= p.max_yaw_difference_rad)
         for i in np.flatnonzero(ok)[np.argsort(d[ok])]:
             if self._line_of_sight(pose, self._poses[i], float(d[i])):
                 self._last_closure_s = stamp_s

@@ -98,9 +98,7 @@ def load_world(path: str | Path) -> World:
         elif kind == "start":
             starts.append((i, f))
         else:
-            raise MapError(
-                f"{p}: feature {i} has unknown kind {kind!r} (boundary, obstacle, start)"
-            )
+            raise MapError(f"{p}: feature {i} has unknown kind {kind!r} (boundary, obstacle, start)")
     if len(boundaries) != 1:
         raise MapError(f"{p}: needs exactly one boundary, found {len(boundaries)}")
     if len(starts) != 1:
@@ -118,14 +116,10 @@ def load_world(path: str | Path) -> World:
     boundary = boundaries[0]
     free = boundary.difference(shapely.union_all(obstacles)) if obstacles else boundary
     if not free.contains(pt):
-        raise MapError(
-            f"{p}: start ({pt.x}, {pt.y}) is not in free space (inside an obstacle or outside the boundary)"
-        )
+        raise MapError(f"{p}: start ({pt.x}, {pt.y}) is not in free space (inside an obstacle or outside the boundary)")
     rings = [boundary.exterior, *boundary.interiors]
     for o in obstacles:
         rings.append(o.exterior)
     walls = np.vstack([_ring_segments(r) for r in rings])
     name = str(data.get("name") or p.stem)
-    return World(
-        name, boundary, tuple(obstacles), free, Pose2(pt.x, pt.y, math.radians(yaw_deg)), walls
-    )
+    return World(name, boundary, tuple(obstacles), free, Pose2(pt.x, pt.y, math.radians(yaw_deg)), walls)

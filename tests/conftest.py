@@ -9,13 +9,35 @@ from typing import Any
 import pytest
 
 
-def write_map(path: Path, boundary: list[list[float]], obstacles: list[list[list[float]]], start: tuple[float, float], yaw_deg: float = 0.0) -> Path:
+def write_map(
+    path: Path,
+    boundary: list[list[float]],
+    obstacles: list[list[list[float]]],
+    start: tuple[float, float],
+    yaw_deg: float = 0.0,
+) -> Path:
     features: list[dict[str, Any]] = [
-        {"type": "Feature", "properties": {"kind": "boundary"}, "geometry": {"type": "Polygon", "coordinates": [boundary]}}
+        {
+            "type": "Feature",
+            "properties": {"kind": "boundary"},
+            "geometry": {"type": "Polygon", "coordinates": [boundary]},
+        }
     ]
     for ob in obstacles:
-        features.append({"type": "Feature", "properties": {"kind": "obstacle"}, "geometry": {"type": "Polygon", "coordinates": [ob]}})
-    features.append({"type": "Feature", "properties": {"kind": "start", "yaw_deg": yaw_deg}, "geometry": {"type": "Point", "coordinates": list(start)}})
+        features.append(
+            {
+                "type": "Feature",
+                "properties": {"kind": "obstacle"},
+                "geometry": {"type": "Polygon", "coordinates": [ob]},
+            }
+        )
+    features.append(
+        {
+            "type": "Feature",
+            "properties": {"kind": "start", "yaw_deg": yaw_deg},
+            "geometry": {"type": "Point", "coordinates": list(start)},
+        }
+    )
     path.write_text(json.dumps({"type": "FeatureCollection", "name": path.stem, "features": features}))
     return path
 
@@ -27,7 +49,13 @@ def square(x0: float, y0: float, x1: float, y1: float) -> list[list[float]]:
 @pytest.fixture
 def small_room(tmp_path: Path) -> Path:
     """An 8 x 6 m room with one pillar: explored in well under a minute of sim time."""
-    return write_map(tmp_path / "small_room.geojson", square(0, 0, 8, 6), [square(3.5, 2.5, 4.5, 3.5)], (1.0, 1.0), 30.0)
+    return write_map(
+        tmp_path / "small_room.geojson",
+        square(0, 0, 8, 6),
+        [square(3.5, 2.5, 4.5, 3.5)],
+        (1.0, 1.0),
+        30.0,
+    )
 
 
 @pytest.fixture

@@ -61,11 +61,37 @@ def test_estimator_reset_keeps_setpoints_continuous():
 
 def test_cli_sim_writes_the_report_with_the_documented_fields(small_room, tmp_path):
     out = tmp_path / "report.json"
-    rc = main(["sim", "--map", str(small_room), "--seed", "1", "--max-time", "600", "--report", str(out), "--quiet"])
+    rc = main(
+        [
+            "sim",
+            "--map",
+            str(small_room),
+            "--seed",
+            "1",
+            "--max-time",
+            "600",
+            "--report",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     r = json.loads(out.read_text())
-    for key in ("map", "planner", "seed", "coverage", "exploration_time_s", "time_to_99_s", "path_length_m",
-                "collisions", "termination", "keyframes", "loop_closures", "frontiers_left", "step_ms"):
+    for key in (
+        "map",
+        "planner",
+        "seed",
+        "coverage",
+        "exploration_time_s",
+        "time_to_99_s",
+        "path_length_m",
+        "collisions",
+        "termination",
+        "keyframes",
+        "loop_closures",
+        "frontiers_left",
+        "step_ms",
+    ):
         assert key in r
     assert set(r["step_ms"]) >= {"p50", "p99"}
 

@@ -38,7 +38,8 @@ def test_occlusion_inserts_frontier_on_the_far_ray_at_the_near_range():
     r[30:] = 1.5  # a near object covering the left half
     poly = scan_to_polygon(scan(r), PolygonParams(min_vertex_spacing_m=0.0, side_frontier_spacing_m=0.0))
     inserted = [
-        i for i, v in enumerate(poly.vertices_xy)
+        i
+        for i, v in enumerate(poly.vertices_xy)
         if poly.kinds[i] == VertexKind.FRONTIER and np.isclose(np.hypot(*v), 1.5)
     ]
     assert len(inserted) == 1
@@ -85,7 +86,9 @@ def test_full_turn_scan_has_no_origin_vertex():
 
 
 ranges_st = st.lists(
-    st.one_of(st.floats(0.0, 6.0), st.just(float("nan")), st.just(float("inf")), st.just(-1.0)), min_size=8, max_size=80
+    st.one_of(st.floats(0.0, 6.0), st.just(float("nan")), st.just(float("inf")), st.just(-1.0)),
+    min_size=8,
+    max_size=80,
 )
 
 

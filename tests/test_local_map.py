@@ -32,7 +32,9 @@ def test_a_view_surrounded_by_earlier_views_leaves_no_open_frontier():
     # Then a view from just behind that sees past the first ring in the same direction.
     last_id, _ = add_pose(m, Pose2(-0.5, 0, 3 * math.pi / 2), prev, open_scan(3.0))
     inner = m.keyframes[last_id]
-    assert np.count_nonzero(inner.kinds == VertexKind.FRONTIER) < np.count_nonzero(inner.polygon.kinds == VertexKind.FRONTIER)
+    assert np.count_nonzero(inner.kinds == VertexKind.FRONTIER) < np.count_nonzero(
+        inner.polygon.kinds == VertexKind.FRONTIER
+    )
 
 
 def test_frontier_seen_past_by_a_later_view_is_closed():

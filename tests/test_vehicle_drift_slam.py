@@ -63,7 +63,11 @@ def _travel(slam: SimulatedSlam, points, t0=0.0):
 
 def test_loop_closure_fires_on_return_with_line_of_sight_and_reports_the_true_transform():
     slam = SimulatedSlam(SlamParams(), np.zeros((0, 2, 2)))
-    path = [(float(x), 0.0) for x in range(0, 8)] + [(7.0, float(y)) for y in range(1, 4)] + [(float(x), 3.0) for x in range(6, -1, -1)]
+    path = (
+        [(float(x), 0.0) for x in range(0, 8)]
+        + [(7.0, float(y)) for y in range(1, 4)]
+        + [(float(x), 3.0) for x in range(6, -1, -1)]
+    )
     closures = _travel(slam, path)
     assert closures
     c = closures[0]
@@ -74,5 +78,9 @@ def test_loop_closure_fires_on_return_with_line_of_sight_and_reports_the_true_tr
 def test_no_loop_closure_through_a_wall():
     wall = np.array([[[-10.0, 1.5], [20.0, 1.5]]])
     slam = SimulatedSlam(SlamParams(), wall)
-    path = [(float(x), 0.0) for x in range(0, 8)] + [(7.0, float(y)) for y in range(1, 4)] + [(float(x), 3.0) for x in range(6, -1, -1)]
+    path = (
+        [(float(x), 0.0) for x in range(0, 8)]
+        + [(7.0, float(y)) for y in range(1, 4)]
+        + [(float(x), 3.0) for x in range(6, -1, -1)]
+    )
     assert _travel(slam, path) == []

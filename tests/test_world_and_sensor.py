@@ -42,10 +42,25 @@ def test_start_inside_an_obstacle_is_refused(tmp_path):
 
 def test_boundary_that_is_not_a_polygon_is_refused(tmp_path):
     p = tmp_path / "line.geojson"
-    p.write_text(json.dumps({"type": "FeatureCollection", "features": [
-        {"type": "Feature", "properties": {"kind": "boundary"}, "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}},
-        {"type": "Feature", "properties": {"kind": "start"}, "geometry": {"type": "Point", "coordinates": [0.5, 0.5]}},
-    ]}))
+    p.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {"kind": "boundary"},
+                        "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]},
+                    },
+                    {
+                        "type": "Feature",
+                        "properties": {"kind": "start"},
+                        "geometry": {"type": "Point", "coordinates": [0.5, 0.5]},
+                    },
+                ],
+            }
+        )
+    )
     with pytest.raises(MapError, match="must be a Polygon"):
         load_world(p)
 

@@ -58,11 +58,7 @@ class OdometryHistory:
 
     def at(self, stamp_s: float) -> Pose2 | None:
         """Linear interpolation between neighbouring samples; None outside the history."""
-        if (
-            not self._stamps
-            or stamp_s < self._stamps[0] - 1e-6
-            or stamp_s > self._stamps[-1] + 1e-6
-        ):
+        if not self._stamps or stamp_s < self._stamps[0] - 1e-6 or stamp_s > self._stamps[-1] + 1e-6:
             return None
         i = bisect.bisect_left(self._stamps, stamp_s)
         if i < len(self._stamps) and abs(self._stamps[i] - stamp_s) < 1e-9:
@@ -159,10 +155,7 @@ class Explorer:
         for closure in self._pending_closures:
             if newest is not None and closure.current_stamp_s <= newest + 1e-6:
                 self._apply_loop_closure(closure)
-            elif (
-                newest is None
-                or closure.current_stamp_s - newest < self.params.loop_closure_max_gap_s
-            ):
+            elif newest is None or closure.current_stamp_s - newest < self.params.loop_closure_max_gap_s:
                 keep.append(closure)
             else:
                 self.loop_closures_rejected += 1
@@ -179,22 +172,11 @@ class Explorer:
         b = self._keyframe_near(closure.current_stamp_s, gap)
         pe = self.history.at(closure.earlier_stamp_s)
         pc = self.history.at(closure.current_stamp_s)
-        if (
-            a is None
-            or b is None
-            or a == b
-            or pe is None
-            or pc is None
-            or not closure.earlier_to_current.is_finite()
-        ):
+        if a is None or b is None or a == b or pe is None or pc is None or not closure.earlier_to_current.is_finite():
             self.loop_closures_rejected += 1
             return False
         ka, kb = self.map.keyframes[a], self.map.keyframes[b]
-        a_to_b = (
-            ka.odom_pose.between(pe)
-            .compose(closure.earlier_to_current)
-            .compose(pc.between(kb.odom_pose))
-        )
+        a_to_b = ka.odom_pose.between(pe).compose(closure.earlier_to_current).compose(pc.between(kb.odom_pose))
         if a > b:
             a, b, a_to_b = b, a, a_to_b.inverse()
         self.map.add_loop_closure(a, b, a_to_b)

@@ -150,9 +150,7 @@ def _insert_occlusions(
     return np.array(b_out), np.array(r_out), np.array(f_out, dtype=bool)
 
 
-def _subsample(
-    points: FloatArray, frontier: NDArray[np.bool_], spacing_m: float
-) -> NDArray[np.intp]:
+def _subsample(points: FloatArray, frontier: NDArray[np.bool_], spacing_m: float) -> NDArray[np.intp]:
     """Indices to keep: drop a vertex closer than ``spacing_m`` to the last kept one of the same
     kind, but always keep the ends and both sides of every kind change."""
     n = points.shape[0]
@@ -186,9 +184,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     """Build the field-of-view polygon of ``scan`` in its own (body = keyframe) frame."""
     p = params or PolygonParams()
     ranges, frontier = _classify_ranges(scan, p.frontier_range_tolerance_m)
-    bearings, ranges, frontier = _insert_occlusions(
-        scan.bearings_rad, ranges, frontier, p.occlusion_threshold_m
-    )
+    bearings, ranges, frontier = _insert_occlusions(scan.bearings_rad, ranges, frontier, p.occlusion_threshold_m)
     pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
     keep = _subsample(pts, frontier, p.min_vertex_spacing_m)
     pts, frontier = pts[keep], frontier[keep]

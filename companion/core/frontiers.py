@@ -64,9 +64,7 @@ class FrontierPoint:
     y_m: float
 
 
-def open_frontiers_in(
-    local_map: LocalMap, frame_id: int, keyframe_ids: list[int] | None = None
-) -> list[FrontierPoint]:
+def open_frontiers_in(local_map: LocalMap, frame_id: int, keyframe_ids: list[int] | None = None) -> list[FrontierPoint]:
     """Open frontier vertices of the given keyframes (all by default) in ``frame_id``'s frame."""
     ids = list(local_map.keyframes) if keyframe_ids is None else keyframe_ids
     out: list[FrontierPoint] = []
@@ -78,7 +76,6 @@ def open_frontiers_in(
         pose: Pose2 = local_map.pose_in(frame_id, k)
         pts = pose.apply(kf.polygon.vertices_xy[idx])
         out.extend(
-            FrontierPoint(FrontierKey(k, int(i)), float(x), float(y))
-            for i, (x, y) in zip(idx, pts, strict=True)
+            FrontierPoint(FrontierKey(k, int(i)), float(x), float(y)) for i, (x, y) in zip(idx, pts, strict=True)
         )
     return out

@@ -139,10 +139,7 @@ class LocalMap:
         shapes = [s if s.is_valid else shapely.make_valid(s) for s in shapes]
         grown = shapely.union_all(shapes, grid_size=1e-3)  # snap rounding: robust unions
         shapely.prepare(grown)
-        segs = [
-            p.apply(self.keyframes[k].polygon.obstacle_segments().reshape(-1, 2))
-            for k, p in poses.items()
-        ]
+        segs = [p.apply(self.keyframes[k].polygon.obstacle_segments().reshape(-1, 2)) for k, p in poses.items()]
         obstacles = _segments_geometry(np.vstack(segs).reshape(-1, 2, 2))
         shapely.prepare(obstacles)
         view = LocalView(keyframe_id, poses, grown, obstacles)
@@ -151,9 +148,7 @@ class LocalMap:
         return view
 
     def open_frontier_count(self) -> int:
-        return int(
-            sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values())
-        )
+        return int(sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values()))
 
     def pose_in(self, frame_id: int, keyframe_id: int) -> Pose2:
         """Pose of a keyframe in another's frame: the cached neighbourhood or the graph path."""
@@ -174,11 +169,7 @@ class LocalMap:
                 return False
             return bool(shape.intersects(_moved(other.polygon.shape, pose)))
 
-        return {
-            v.keyframe_id: v.pose_in_start
-            for v in self.graph.walk(kf_id, overlaps)
-            if v.keyframe_id != kf_id
-        }
+        return {v.keyframe_id: v.pose_in_start for v in self.graph.walk(kf_id, overlaps) if v.keyframe_id != kf_id}
 
     def _integrate(self, kf_id: int) -> None:
         """(Re)compute a keyframe's neighbourhood, then close the frontiers it shares."""

@@ -135,9 +135,7 @@ class FrontierPlanner:
         required = self._required_clearance(view, here)
 
         if self.goal is not None:
-            decision = self._follow_goal(
-                local_map, frame_id, view, vehicle, here, required, stamp_s
-            )
+            decision = self._follow_goal(local_map, frame_id, view, vehicle, here, required, stamp_s)
             if decision is not None:
                 return decision
 
@@ -186,24 +184,18 @@ class FrontierPlanner:
             self._failed(goal.key)
             self.goal = None
             return None
-        blocked = dist > self.params.goal_reached_m and not self._accessible(
-            view, here, goal_xy, required
-        )
+        blocked = dist > self.params.goal_reached_m and not self._accessible(view, here, goal_xy, required)
         if goal.arrived_s is None and blocked:
             self.goal = None
             return None
         return self._fly(vehicle, goal_xy, look, Mode.EXPLORING, goal.key)
 
-    def _commit(
-        self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float
-    ) -> None:
+    def _commit(self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float) -> None:
         pose = local_map.pose_in(frame_id, c.key.keyframe_id).inverse()
         lx, ly = pose.apply_point(float(c.goal_xy[0]), float(c.goal_xy[1]))
         dist = float(np.hypot(*(c.goal_xy - here)))
         budget = max(self.params.goal_timeout_min_s, 3.0 * dist / self.params.cruise_speed_mps)
-        self.goal = _Goal(
-            c.key, (lx, ly), wrap_angle(c.look_rad + pose.yaw_rad), stamp_s, stamp_s + budget
-        )
+        self.goal = _Goal(c.key, (lx, ly), wrap_angle(c.look_rad + pose.yaw_rad), stamp_s, stamp_s + budget)
 
     def _failed(self, key: FrontierKey) -> None:
         n = self.attempts.get(key, 0) + 1
@@ -213,9 +205,7 @@ class FrontierPlanner:
 
     # -- rapid selection in the current neighbourhood -------------------------------------------
 
-    def _candidates(
-        self, local_map: LocalMap, view: LocalView, vehicle: Pose2, here: FloatArray
-    ) -> list[_Candidate]:
+    def _candidates(self, local_map: LocalMap, view: LocalView, vehicle: Pose2, here: FloatArray) -> list[_Candidate]:
         p = self.params
         keys: list[FrontierKey] = []
         goals: list[FloatArray] = []
@@ -225,9 +215,7 @@ class FrontierPlanner:
             idx = targetable_indices(kf, p.min_frontier_size_m)
             if idx.size == 0:
                 continue
-            idx = np.array(
-                [i for i in idx if FrontierKey(k, int(i)) not in self.set_aside], dtype=np.intp
-            )
+            idx = np.array([i for i in idx if FrontierKey(k, int(i)) not in self.set_aside], dtype=np.intp)
             if idx.size == 0:
                 continue
             v = kf.polygon.vertices_xy[idx]
@@ -251,9 +239,7 @@ class FrontierPlanner:
         score = change + p.distance_weight_rad_per_m * dist
         inside = shapely.contains_xy(view.grown, g[:, 0], g[:, 1])
         order = np.argsort(score, kind="stable")
-        return [
-            _Candidate(keys[i], g[i], float(look[i]), float(score[i])) for i in order if inside[i]
-        ]
+        return [_Candidate(keys[i], g[i], float(look[i]), float(score[i])) for i in order if inside[i]]
 
     def _select_local(
         self,
@@ -282,9 +268,7 @@ class FrontierPlanner:
             now = min(now, float(np.min(np.hypot(*(self._live - here).T))))
         return min(self.params.clearance_m, 0.9 * now)
 
-    def _accessible(
-        self, view: LocalView, start: FloatArray, goal: FloatArray, required: float
-    ) -> bool:
+    def _accessible(self, view: LocalView, start: FloatArray, goal: FloatArray, required: float) -> bool:
         """Straight path inside known free space and clear of every obstacle edge in view."""
         if float(np.hypot(*(goal - start))) < 1e-6:
             return bool(shapely.contains_xy(view.grown, goal[0], goal[1]))
@@ -325,22 +309,16 @@ class FrontierPlanner:
         if route.keyframes and route.keyframes[0] == frame_id and len(route.keyframes) == 1:
             origin_dist = math.hypot(vehicle.x_m, vehicle.y_m)
             if origin_dist <= self.params.waypoint_reached_m:
-                for i in targetable_indices(
-                    local_map.keyframes[frame_id], self.params.min_frontier_size_m
-                ):
+                for i in targetable_indices(local_map.keyframes[frame_id], self.params.min_frontier_size_m):
                     self._failed(FrontierKey(frame_id, int(i)))
                 self.route = None
-                return Decision(
-                    Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad)
-                )
+                return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # Skip ahead to the farthest route keyframe in view that a straight path reaches.
         nxt = route.keyframes[0]
         for j in range(min(len(route.keyframes), self.params.shortcut_hops) - 1, 0, -1):
             k = route.keyframes[j]
             pose = view.poses.get(k)
-            if pose is not None and self._accessible(
-                view, here, np.array([pose.x_m, pose.y_m]), required
-            ):
+            if pose is not None and self._accessible(view, here, np.array([pose.x_m, pose.y_m]), required):
                 del route.keyframes[:j]
                 nxt = k
                 break
@@ -356,12 +334,8 @@ class FrontierPlanner:
         if float(np.hypot(*(wp - here))) <= self.params.waypoint_reached_m:
             if len(route.keyframes) > 1:
                 route.keyframes.pop(0)
-            return Decision(
-                Mode.BACKTRACKING, Target(pose.x_m, pose.y_m, pose.yaw_rad), relocalize_to=nxt
-            )
-        return self._fly(
-            vehicle, wp, float(np.arctan2(*(wp - here)[::-1])), Mode.BACKTRACKING, None
-        )
+            return Decision(Mode.BACKTRACKING, Target(pose.x_m, pose.y_m, pose.yaw_rad), relocalize_to=nxt)
+        return self._fly(vehicle, wp, float(np.arctan2(*(wp - here)[::-1])), Mode.BACKTRACKING, None)
 
     def _has_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
         kf = local_map.keyframes[keyframe_id]

@@ -84,9 +84,7 @@ class PoseGraph:
         except KeyError:
             raise GraphError(f"keyframe {keyframe_id} is not in the graph") from None
 
-    def walk(
-        self, start_id: int, accept: Callable[[int, Pose2], bool] | None = None
-    ) -> Iterator[Visit]:
+    def walk(self, start_id: int, accept: Callable[[int, Pose2], bool] | None = None) -> Iterator[Visit]:
         """Breadth-first walk by hop count from ``start_id`` (yielded first).
 
         A keyframe for which ``accept(id, pose_in_start)`` is False is neither yielded nor

@@ -1,0 +1,89 @@
+"""Exploration benchmark: every shipped map, seeds 1..N, polygon planner (with drift) against the
+grid baseline (perfect poses). Writes JSON results and prints a summary table.
+
+    .venv/bin/python benchmarks/run.py --out out/bench/results.json [--seeds 5] [--maps room office]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from sitl.runner import run_exploration
+from sitl.world import load_world
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("out/bench/results.json"))
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--maps", nargs="*", default=None, help="map names in config/maps (default: all)")
+    parser.add_argument("--max-time", type=float, default=3600.0)
+    args = parser.parse_args()
+    console = Console()
+    paths = sorted(Path("config/maps").glob("*.geojson"))
+    if args.maps:
+        paths = [p for p in paths if p.stem in args.maps]
+    runs = []
+    for path in paths:
+        world = load_world(path)
+        for seed in range(1, args.seeds + 1):
+            row = {}
+            for planner in ("polygon", "grid"):
+                t0 = time.perf_counter()
+                report = run_exploration(
+                    world, planner, seed=seed, max_time_s=args.max_time, map_label=path.stem
+                ).report
+                report["wall_s"] = round(time.perf_counter() - t0, 2)
+                row[planner] = report
+                console.print(
+                    f"{path.stem} seed {seed} {planner}: {report['termination']} cov {report['coverage']:.3f} "
+                    f"t {report['exploration_time_s']:.0f} s, step p99 {report['step_ms']['p99']:.1f} ms"
+                )
+            row["time_ratio"] = round(row["polygon"]["exploration_time_s"] / row["grid"]["exploration_time_s"], 3)
+            t99p, t99g = row["polygon"]["time_to_99_s"], row["grid"]["time_to_99_s"]
+            row["time_to_99_ratio"] = None if not (t99p and t99g) else round(t99p / t99g, 3)
+            runs.append({"map": path.stem, "seed": seed, **row})
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(runs, indent=2) + "\n")
+    table = Table(title="polygon (drift) vs grid (perfect poses)")
+    for col in (
+        "map",
+        "runs",
+        "coverage min",
+        "collisions",
+        "complete",
+        "time ratio median",
+        "t99 ratio median",
+        "step p99 max [ms]",
+    ):
+        table.add_column(col)
+    for name in sorted({r["map"] for r in runs}):
+        rs = [r for r in runs if r["map"] == name]
+        t99 = [r["time_to_99_ratio"] for r in rs if r["time_to_99_ratio"]]
+        table.add_row(
+            name,
+            str(len(rs)),
+            f"{min(r['polygon']['coverage'] for r in rs):.3f}",
+            str(sum(r["polygon"]["collisions"] for r in rs)),
+            f"{sum(r['polygon']['termination'] == 'complete' for r in rs)}/{len(rs)}",
+            f"{statistics.median(r['time_ratio'] for r in rs):.2f}",
+            f"{statistics.median(t99):.2f}" if t99 else "-",
+            f"{max(r['polygon']['step_ms']['p99'] for r in rs):.1f}",
+        )
+    console.print(table)
+    console.print(f"results: {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
