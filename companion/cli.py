@@ -102,7 +102,8 @@ def _sim(args: argparse.Namespace, console: Console) -> int:
             baseline = _explore(world, args, "grid", console)
             b = baseline.report
             console.print(
-                f"grid baseline: {b['termination']}, coverage {b['coverage']:.3f}, time {b['exploration_time_s']:.1f} s "
+                f"grid baseline: {b['termination']}, coverage {b['coverage']:.3f}, "
+                f"time {b['exploration_time_s']:.1f} s "
                 f"-> time ratio polygon/grid {r['exploration_time_s'] / max(b['exploration_time_s'], 1e-9):.2f}"
             )
         for path in write_plots(world, trace, args.plots, baseline):

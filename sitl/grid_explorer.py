@@ -205,10 +205,9 @@ class GridExplorer:
             # Looked at it from its goal and it is still a frontier: nothing more to see there.
             ci, cj = self._frontier_cell
             self._ignored[max(ci - 1, 0) : ci + 2, max(cj - 1, 0) : cj + 2] = True
-        if not self._path or stale or self._arrived:
-            if not self._plan(pose):
-                self.done = True
-                return None
+        if (not self._path or stale or self._arrived) and not self._plan(pose):
+            self.done = True
+            return None
         here = (pose.x_m, pose.y_m)
         # Drop the path up to the point nearest the vehicle, then aim at the farthest point
         # within the lookahead that a straight line reaches.
