@@ -324,7 +324,11 @@ class FrontierPlanner:
                 break
         pose = local_map.pose_in(frame_id, nxt)
         wp = np.array([pose.x_m, pose.y_m])
-        if self._live.shape[0] and _segment_clearance(here, wp, self._live) < required:
+        travel = float(np.arctan2(*(wp - here)[::-1]))
+        facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
+        # Only judge a leg by the newest scan once facing it: the sensor looks ahead, and the
+        # vehicle turns in place towards a leg before it flies it.
+        if facing and self._live.shape[0] and _segment_clearance(here, wp, self._live) < required:
             # The sensor sees this leg blocked now (a drifted or loop-closure leg cutting a
             # corner): give up this route rather than fly it; its frontiers count a failed try.
             for i in targetable_indices(local_map.keyframes[route.target_keyframe], self.params.min_frontier_size_m):
