@@ -16,7 +16,7 @@ import numpy as np
 import shapely
 from shapely.geometry import shape as geojson_shape
 
-from companion.core.geometry import FloatArray, Pose2
+from companion.core.geometry import FloatArray, Pose2, point_segment_distances
 from sitl.errors import MapError
 
 
@@ -44,17 +44,6 @@ class World:
 def _ring_segments(ring: Any) -> FloatArray:
     c = np.asarray(ring.coords, dtype=np.float64)
     return np.stack((c[:-1], c[1:]), axis=1)
-
-
-def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
-    """(N, M) distances from points to segments (M, 2, 2)."""
-    a = segments[None, :, 0, :]
-    ab = segments[None, :, 1, :] - a
-    ap = points_xy[:, None, :] - a
-    denom = np.maximum(np.einsum("nmk,nmk->nm", ab, ab), 1e-12)
-    t = np.clip(np.einsum("nmk,nmk->nm", ap, ab) / denom, 0.0, 1.0)
-    d = points_xy[:, None, :] - (a + t[..., None] * ab)
-    return np.asarray(np.hypot(d[..., 0], d[..., 1]))
 
 
 def _polygon(feature: dict[str, Any], path: Path, what: str) -> shapely.Polygon:

@@ -86,3 +86,14 @@ class Pose2:
 
     def distance_to(self, other: Pose2) -> float:
         return math.hypot(other.x_m - self.x_m, other.y_m - self.y_m)
+
+
+def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
+    """(N, M) distances from N points to M segments given as (M, 2, 2)."""
+    a = segments[None, :, 0, :]
+    ab = segments[None, :, 1, :] - a
+    ap = points_xy[:, None, :] - a
+    denom = np.maximum(np.einsum("nmk,nmk->nm", ab, ab), 1e-12)
+    t = np.clip(np.einsum("nmk,nmk->nm", ap, ab) / denom, 0.0, 1.0)
+    closest = a + t[..., None] * ab
+    return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)

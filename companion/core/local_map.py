@@ -22,7 +22,7 @@ from shapely import affinity
 
 from companion.core.errors import GraphError
 from companion.core.fov_polygon import FovPolygon, VertexKind
-from companion.core.geometry import FloatArray, Pose2
+from companion.core.geometry import FloatArray, Pose2, point_segment_distances
 from companion.core.pose_graph import EdgeType, PoseGraph
 
 
@@ -217,16 +217,5 @@ class LocalMap:
         segs = kf.polygon.obstacle_segments()
         if segs.shape[0] == 0 or points_xy.shape[0] == 0:
             return np.zeros(points_xy.shape[0], dtype=bool)
-        near: NDArray[np.bool_] = _point_segment_distance(points_xy, segs).min(axis=1) < snap_m
+        near: NDArray[np.bool_] = point_segment_distances(points_xy, segs).min(axis=1) < snap_m
         return near
-
-
-def _point_segment_distance(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
-    """(N, M) distances from N points to M segments given as (M, 2, 2)."""
-    a = segments[None, :, 0, :]
-    ab = segments[None, :, 1, :] - a
-    ap = points_xy[:, None, :] - a
-    denom = np.maximum(np.einsum("nmk,nmk->nm", ab, ab), 1e-12)
-    t = np.clip(np.einsum("nmk,nmk->nm", ap, ab) / denom, 0.0, 1.0)
-    closest = a + t[..., None] * ab
-    return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)
