@@ -24,7 +24,8 @@ _NEIGHBOURS_8 = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1
 @dataclass(frozen=True, slots=True)
 class GridExplorerParams:
     resolution_m: float = 0.1
-    clearance_m: float = 0.5
+    clearance_m: float = 0.4
+    body_radius_m: float = 0.3
     goal_reached_m: float = 0.3
     look_reached_rad: float = 0.3
     turn_first_rad: float = 0.35
@@ -70,6 +71,11 @@ class GridExplorer:
         self._selected = np.zeros((self.rows, self.cols), dtype=np.int16)
         self.done = False
 
+    @property
+    def _goal_reach_cells(self) -> int:
+        """How far from a frontier cell a goal may be: the body radius kept from unknown space, plus two."""
+        return 2 + int(math.ceil(self.params.body_radius_m / self.params.resolution_m))
+
     def _cell(self, x: float, y: float) -> tuple[int, int]:
         res = self.params.resolution_m
         return int((y - self.y0) / res), int((x - self.x0) / res)
@@ -112,22 +118,32 @@ class GridExplorer:
         return (self.grid == FREE) & (count >= self.params.min_unknown_neighbours) & ~self._ignored
 
     def _passable(self, pose: Pose2) -> NDArray[np.bool_]:
-        """Free cells clear of walls by the clearance, plus the free cells right around the
-        vehicle (it may sit inside the margin after braking near a wall and must get out)."""
+        """Free cells clear of known walls by the clearance and of unknown space by the body
+        radius (an unseen door jamb must not be cut). When braking left the vehicle inside the
+        margin, the free cells around it that still keep the body radius clear are passable too,
+        so it can get out."""
         res = self.params.resolution_m
-        cells = int(math.ceil(self.params.clearance_m / res))
-        passable = (self.grid == FREE) & ~dilate(self.grid == OCCUPIED, cells)
+        occupied = self.grid == OCCUPIED
+        wall_cells = int(math.ceil(self.params.clearance_m / res))
+        body_cells = int(math.ceil(self.params.body_radius_m / res))
+        free = self.grid == FREE
+        body_clear = free & ~dilate(occupied | (self.grid == UNKNOWN), body_cells)
+        passable = body_clear & ~dilate(occupied, wall_cells)
         i, j = self._cell(pose.x_m, pose.y_m)
+        if passable[i, j]:
+            return passable
         k = int(math.ceil((self.params.clearance_m + 0.1) / res))
         near = np.zeros_like(passable)
         near[max(i - k, 0) : i + k + 1, max(j - k, 0) : j + k + 1] = True
-        return passable | (near & (self.grid == FREE))
+        near &= free & ~dilate(occupied, body_cells)
+        near[i, j] = True
+        return passable | near
 
     def _plan(self, pose: Pose2) -> bool:
         """Shortest path on the grid to the nearest frontier; False when none is reachable."""
         frontier = self.frontier_cells()
         passable = self._passable(pose)
-        goals = passable & dilate(frontier, 2)
+        goals = passable & dilate(frontier, self._goal_reach_cells)
         start = self._cell(pose.x_m, pose.y_m)
         dist = np.full(self.grid.shape, -1, dtype=np.int32)
         reached = np.zeros(self.grid.shape, dtype=bool)
@@ -167,8 +183,9 @@ class GridExplorer:
             cells.append((i, j))
         cells.reverse()
         self._path = [self._centre(a, b) for a, b in cells[1:]] or [self._centre(gi, gj)]
-        lo_i, lo_j = max(gi - 3, 0), max(gj - 3, 0)
-        fi, fj = np.nonzero(frontier[lo_i : gi + 4, lo_j : gj + 4])
+        r = self._goal_reach_cells
+        lo_i, lo_j = max(gi - r, 0), max(gj - r, 0)
+        fi, fj = np.nonzero(frontier[lo_i : gi + r + 1, lo_j : gj + r + 1])
         self._frontier_cell = (int(fi[0]) + lo_i, int(fj[0]) + lo_j)
         # A frontier chosen again and again without going away is not worth another try.
         ci, cj = self._frontier_cell
@@ -233,5 +250,7 @@ class GridExplorer:
             return Setpoint(carrot[0], carrot[1], self._look)
         travel = math.atan2(carrot[1] - here[1], carrot[0] - here[0])
         if abs(wrap_angle(travel - pose.yaw_rad)) > p.turn_first_rad:
-            return Setpoint(here[0], here[1], travel)
+            # Turn on the path, not wherever braking ends: hold the nearest path point.
+            hold = self._path[0]
+            return Setpoint(hold[0], hold[1], travel)
         return Setpoint(carrot[0], carrot[1], travel)
