@@ -24,6 +24,7 @@ from enum import Enum
 import numpy as np
 import shapely
 
+from companion.core.errors import GraphError
 from companion.core.frontiers import FrontierKey, targetable_indices
 from companion.core.geometry import FloatArray, Pose2, wrap_angle, wrap_angles
 from companion.core.local_map import LocalMap, LocalView
@@ -54,6 +55,7 @@ class PlannerParams:
     goal_timeout_min_s: float = 10.0
     turn_first_rad: float = 0.35
     shortcut_hops: int = 6
+    leg_margin_m: float = 0.05
 
     @property
     def clearance_m(self) -> float:
@@ -113,6 +115,7 @@ class FrontierPlanner:
     route: _Route | None = None
     attempts: dict[FrontierKey, int] = field(default_factory=dict)
     set_aside: set[FrontierKey] = field(default_factory=set)
+    blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def plan(
@@ -145,7 +148,7 @@ class FrontierPlanner:
             self._commit(local_map, frame_id, best, here, stamp_s)
             return self._fly(vehicle, best.goal_xy, best.look_rad, Mode.EXPLORING, best.key)
 
-        return self._backtrack(local_map, frame_id, view, vehicle, here, required)
+        return self._backtrack(local_map, frame_id, view, vehicle, here, required, stamp_s)
 
     # -- the committed goal ---------------------------------------------------------------------
 
@@ -205,12 +208,21 @@ class FrontierPlanner:
 
     # -- rapid selection in the current neighbourhood -------------------------------------------
 
-    def _candidates(self, local_map: LocalMap, view: LocalView, vehicle: Pose2, here: FloatArray) -> list[_Candidate]:
+    def _candidates(
+        self,
+        local_map: LocalMap,
+        view: LocalView,
+        vehicle: Pose2,
+        here: FloatArray,
+        only_keyframe: int | None = None,
+    ) -> list[_Candidate]:
         p = self.params
         keys: list[FrontierKey] = []
         goals: list[FloatArray] = []
         looks: list[FloatArray] = []
         for k, pose in view.poses.items():
+            if only_keyframe is not None and k != only_keyframe:
+                continue
             kf = local_map.keyframes[k]
             idx = targetable_indices(kf, p.min_frontier_size_m)
             if idx.size == 0:
@@ -249,8 +261,9 @@ class FrontierPlanner:
         vehicle: Pose2,
         here: FloatArray,
         required: float,
+        only_keyframe: int | None = None,
     ) -> _Candidate | None:
-        candidates = self._candidates(local_map, view, vehicle, here)
+        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe)
         for c in candidates[: self.params.max_candidates_checked]:
             if self._accessible(view, here, c.goal_xy, required):
                 return c
@@ -295,6 +308,7 @@ class FrontierPlanner:
         vehicle: Pose2,
         here: FloatArray,
         required: float,
+        stamp_s: float,
     ) -> Decision:
         if (
             self.route is None
@@ -305,52 +319,86 @@ class FrontierPlanner:
         if self.route is None:
             return Decision(Mode.COMPLETE, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         route = self.route
-        # The route ends here: the frontiers of the target keyframe are out of reach from it.
-        if route.keyframes and route.keyframes[0] == frame_id and len(route.keyframes) == 1:
-            origin_dist = math.hypot(vehicle.x_m, vehicle.y_m)
-            if origin_dist <= self.params.waypoint_reached_m:
-                for i in targetable_indices(local_map.keyframes[frame_id], self.params.min_frontier_size_m):
-                    self._failed(FrontierKey(frame_id, int(i)))
+        # The route ends here: take the target keyframe's own frontiers from its origin, where
+        # its polygon is star-shaped; those still out of reach count a failed try.
+        if route.keyframes == [frame_id] and math.hypot(vehicle.x_m, vehicle.y_m) <= self.params.waypoint_reached_m:
+            best = self._select_local(local_map, frame_id, view, vehicle, here, required, only_keyframe=frame_id)
+            if best is not None:
                 self.route = None
-                return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
+                self._commit(local_map, frame_id, best, here, stamp_s)
+                return self._fly(vehicle, best.goal_xy, best.look_rad, Mode.EXPLORING, best.key)
+            self._fail_keyframe(local_map, frame_id)
+            self.route = None
+            return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # Skip ahead to the farthest route keyframe in view that a straight path reaches.
-        nxt = route.keyframes[0]
+        skip = 0
         for j in range(min(len(route.keyframes), self.params.shortcut_hops) - 1, 0, -1):
             k = route.keyframes[j]
             pose = view.poses.get(k)
-            if pose is not None and self._accessible(view, here, np.array([pose.x_m, pose.y_m]), required):
-                del route.keyframes[:j]
-                nxt = k
+            if (
+                pose is not None
+                and (frame_id, k) not in self.blocked_legs
+                and self._accessible(view, here, np.array([pose.x_m, pose.y_m]), required)
+            ):
+                skip = j
                 break
+        nxt = route.keyframes[skip]
         pose = local_map.pose_in(frame_id, nxt)
         wp = np.array([pose.x_m, pose.y_m])
         travel = float(np.arctan2(*(wp - here)[::-1]))
         facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
         # Only judge a leg by the newest scan once facing it: the sensor looks ahead, and the
         # vehicle turns in place towards a leg before it flies it.
-        if facing and self._live.shape[0] and _segment_clearance(here, wp, self._live) < required:
+        # A leg between keyframes was flown once: it needs the body radius clear, not the margin.
+        leg_required = min(required, self.params.body_radius_m + self.params.leg_margin_m)
+        if facing and self._live.shape[0] and _segment_clearance(here, wp, self._live) < leg_required:
             # The sensor sees this leg blocked now (a drifted or loop-closure leg cutting a
-            # corner): give up this route rather than fly it; its frontiers count a failed try.
-            for i in targetable_indices(local_map.keyframes[route.target_keyframe], self.params.min_frontier_size_m):
-                self._failed(FrontierKey(route.target_keyframe, int(i)))
-            self.route = None
+            # corner): never take it again; re-route around it, and only when no route is left
+            # do the target's frontiers count a failed try.
+            self.blocked_legs.add((frame_id, nxt))
+            if skip == 0:
+                self.route = self._find_route(local_map, frame_id, route.target_keyframe)
+                if self.route is None:
+                    self._fail_keyframe(local_map, route.target_keyframe)
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
+        del route.keyframes[:skip]
         if float(np.hypot(*(wp - here))) <= self.params.waypoint_reached_m:
             if len(route.keyframes) > 1:
                 route.keyframes.pop(0)
             return Decision(Mode.BACKTRACKING, Target(pose.x_m, pose.y_m, pose.yaw_rad), relocalize_to=nxt)
-        return self._fly(vehicle, wp, float(np.arctan2(*(wp - here)[::-1])), Mode.BACKTRACKING, None)
+        return self._fly(vehicle, wp, travel, Mode.BACKTRACKING, None)
+
+    def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int) -> None:
+        for i in targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m):
+            self._failed(FrontierKey(keyframe_id, int(i)))
 
     def _has_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
         kf = local_map.keyframes[keyframe_id]
         idx = targetable_indices(kf, self.params.min_frontier_size_m)
         return any(FrontierKey(keyframe_id, int(i)) not in self.set_aside for i in idx)
 
-    def _find_route(self, local_map: LocalMap, frame_id: int) -> _Route | None:
-        for visit in local_map.graph.walk(frame_id):
-            if self._has_targets(local_map, visit.keyframe_id):
-                path = local_map.graph.path(frame_id, visit.keyframe_id)
-                return _Route(path[1:] if len(path) > 1 else path, visit.keyframe_id)
+    def _find_route(self, local_map: LocalMap, frame_id: int, target_id: int | None = None) -> _Route | None:
+        """Fewest-hop route to ``target_id`` (default: the nearest keyframe with open frontiers)
+        that avoids the legs seen blocked; None when there is none."""
+        if target_id is not None:
+            targets = [target_id]
+        else:
+            walk = local_map.graph.walk(frame_id)
+            targets = [v.keyframe_id for v in walk if self._has_targets(local_map, v.keyframe_id)]
+        for k in targets:
+            try:
+                path = local_map.graph.path(frame_id, k, avoid=self.blocked_legs)
+            except GraphError:
+                continue
+            return _Route(path[1:] if len(path) > 1 else path, k)
+        if target_id is None and targets:
+            # Frontiers are left but every route to them crosses a leg once seen blocked: those
+            # sightings may have been drift or a passing scan artefact, so forget them, and let the
+            # frontiers count a failed try (which bounds how often this can happen).
+            self.blocked_legs.clear()
+            for k in targets:
+                self._fail_keyframe(local_map, k)
+            return self._find_route(local_map, frame_id)
         return None
 
     # -- output ---------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import itertools
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from enum import Enum
 
@@ -105,8 +105,9 @@ class PoseGraph:
                 if accept is None or accept(nbr, pose):
                     queue.append(Visit(nbr, visit.hops + 1, pose))
 
-    def path(self, from_id: int, to_id: int) -> list[int]:
-        """Fewest-hop path of keyframe ids from ``from_id`` to ``to_id`` (both included)."""
+    def path(self, from_id: int, to_id: int, avoid: Collection[tuple[int, int]] = ()) -> list[int]:
+        """Fewest-hop path of keyframe ids from ``from_id`` to ``to_id`` (both included), not
+        using the edges listed in ``avoid`` (as ``(a, b)`` pairs, either direction)."""
         if to_id not in self._adjacency or from_id not in self._adjacency:
             raise GraphError(f"keyframe {from_id} or {to_id} is not in the graph")
         parent: dict[int, int] = {from_id: from_id}
@@ -116,7 +117,7 @@ class PoseGraph:
             if k == to_id:
                 break
             for nbr, _ in self._adjacency[k]:
-                if nbr not in parent:
+                if nbr not in parent and (k, nbr) not in avoid and (nbr, k) not in avoid:
                     parent[nbr] = k
                     queue.append(nbr)
         if to_id not in parent:
