@@ -1,4 +1,5 @@
-"""``companion`` command line: ``companion sim`` runs an exploration in the simulator in-process."""
+"""``companion`` command line: ``companion sim`` explores in the in-process simulator; ``companion run``
+runs the service against a vehicle (real or ``sitl run``) as its config says."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
+from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
 from sitl.world import World, load_world
@@ -51,6 +53,10 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--plots", type=Path, help="write PNG figures into this folder")
     sim.add_argument("--no-baseline", action="store_true", help="with --plots: skip the grid baseline run")
     sim.add_argument("--quiet", action="store_true", help="no progress display")
+    run = sub.add_parser("run", help="run the service against a vehicle, as the config says")
+    run.add_argument("--config", required=True, type=Path, help="YAML config (see config/*.yaml)")
+    run.add_argument("--report", type=Path, help="write the JSON report here at the end")
+    run.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return parser
 
 
@@ -111,6 +117,24 @@ def _sim(args: argparse.Namespace, console: Console) -> int:
     return 0 if r["termination"] in ("complete", "unreachable_frontiers_left") and r["collisions"] == 0 else 1
 
 
+def _run(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from rich.logging import RichHandler
+
+    from companion.app import run_service
+    from companion.config import load_config
+
+    config = load_config(args.config)
+    logging.basicConfig(
+        level=args.log_level,
+        format="%(name)s: %(message)s",
+        handlers=[RichHandler(console=Console(stderr=True), show_path=False)],
+    )
+    return asyncio.run(run_service(config, args.report))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     console = Console(stderr=False)
@@ -118,7 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "sim":
             return _sim(args, console)
-    except SitlError as exc:
+        if args.command == "run":
+            return _run(args)
+    except (SitlError, CompanionError) as exc:
         err.print(f"[red]error:[/] {exc}")
         return 2
     except KeyboardInterrupt:

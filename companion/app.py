@@ -1,0 +1,112 @@
+"""``companion run``: build the links the config names, run the service, write the report.
+
+This is the only place that picks transports; the service sees the interfaces of
+:mod:`companion.links.base` only.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import signal
+from pathlib import Path
+from typing import Any
+
+from companion.config import Config
+from companion.errors import CompanionError
+from companion.links.base import FlightControl, InputSource
+from companion.service import Service, ServiceSettings
+
+log = logging.getLogger("companion")
+
+EXIT_OK, EXIT_FAILED = 0, 1
+NORMAL_ENDINGS = ("complete", "unreachable_frontiers_left")
+
+
+async def run_service(config: Config, report_path: Path | None) -> int:
+    """Connect, fly one exploration, land; 0 when the exploration ended normally."""
+    from companion.links.mavlink_link import MavlinkLink, MavlinkSettings
+
+    v = config.vehicle
+    link = MavlinkLink(
+        MavlinkSettings(
+            v.mavlink,
+            baud=v.baud,
+            setpoint_rate_hz=v.setpoint_rate_hz,
+            altitude_m=v.altitude_m,
+            command_timeout_s=v.command_timeout_s,
+            arm_timeout_s=v.arm_timeout_s,
+            input_rate_hz=v.input_rate_hz,
+        )
+    )
+    closers: list[Any] = [link]
+    report: dict[str, Any] = {}
+    try:
+        await link.connect()
+        control: FlightControl = link
+        if v.control == "mavsdk":
+            from companion.links.mavsdk_control import MavsdkControl
+
+            assert v.mavsdk_url is not None
+            mavsdk = MavsdkControl(v.mavsdk_url, v.setpoint_rate_hz, v.altitude_m)
+            closers.append(mavsdk)
+            await mavsdk.connect()
+            control = mavsdk
+        inputs: list[InputSource] = []
+        if config.inputs.odometry == "mavlink" or config.inputs.scan == "mavlink":
+            inputs.append(_MavlinkInputs(link, config))
+        if config.zenoh is not None and "zenoh" in (
+            config.inputs.odometry,
+            config.inputs.scan,
+            config.inputs.loop_closure,
+        ):
+            raise CompanionError("zenoh inputs are not available in this build yet")
+        service = Service(
+            ServiceSettings(
+                altitude_m=v.altitude_m,
+                input_timeout_s=config.safety.input_timeout_s,
+                startup_timeout_s=config.safety.startup_timeout_s,
+                max_time_s=config.exploration.max_time_s,
+                on_stop=config.safety.on_stop,
+            ),
+            inputs,
+            control,
+        )
+        task = asyncio.create_task(service.run())
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, task.cancel)
+        try:
+            report = await task
+        except asyncio.CancelledError:
+            report = service.report()
+        finally:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+    except CompanionError as err:
+        log.error("%s", err)
+        report = {"termination": "error", "reason": str(err)}
+    finally:
+        for closer in reversed(closers):
+            await closer.close()
+    if report_path is not None:
+        report_path.parent.mkdir(parents=True, exist_ok=True)
+        report_path.write_text(json.dumps(report, indent=2) + "\n")
+    log.info("exploration ended: %s", report.get("termination"))
+    return EXIT_OK if report.get("termination") in NORMAL_ENDINGS else EXIT_FAILED
+
+
+class _MavlinkInputs:
+    """The MAVLink link as an input source, passing on only the streams the config takes from it."""
+
+    def __init__(self, link: Any, config: Config) -> None:
+        self._link = link
+        self._config = config
+
+    def subscribe(self, on_odometry: Any = None, on_scan: Any = None, on_loop_closure: Any = None) -> None:
+        i = self._config.inputs
+        self._link.subscribe(
+            on_odometry if i.odometry == "mavlink" else None,
+            on_scan if i.scan == "mavlink" else None,
+        )

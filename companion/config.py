@@ -1,0 +1,89 @@
+"""The service's configuration: a YAML file validated by pydantic, with clear errors.
+
+Every field has a safe default except where the vehicle is (the MAVLink URL). Unknown keys are
+errors, so a typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from companion.errors import ConfigError
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class VehicleConfig(_Strict):
+    mavlink: str = Field(
+        description="pymavlink URL: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or a serial device"
+    )
+    baud: int = Field(921600, gt=0)
+    control: Literal["pymavlink", "mavsdk"] = "pymavlink"
+    mavsdk_url: str | None = Field(None, description="MAVSDK connection URL when control is mavsdk")
+    setpoint_rate_hz: float = Field(20.0, gt=2.0, le=1000.0)
+    input_rate_hz: float = Field(10.0, gt=0.0, le=200.0)
+    altitude_m: float = Field(1.5, gt=0.2, le=50.0)
+    arm_timeout_s: float = Field(90.0, gt=0.0)
+    command_timeout_s: float = Field(1.0, gt=0.0)
+
+
+class InputsConfig(_Strict):
+    odometry: Literal["mavlink", "zenoh"] = "mavlink"
+    scan: Literal["mavlink", "zenoh"] = "mavlink"
+    loop_closure: Literal["none", "zenoh"] = "none"
+
+
+class SafetyConfig(_Strict):
+    input_timeout_s: float = Field(1.0, gt=0.0, description="odometry or scans older than this stop the flight")
+    startup_timeout_s: float = Field(60.0, gt=0.0, description="wait this long for the first inputs")
+    on_stop: Literal["land", "hold"] = "land"
+
+
+class ExplorationConfig(_Strict):
+    max_time_s: float = Field(1800.0, gt=0.0, description="vehicle seconds of exploration before landing")
+
+
+class ZenohConfig(_Strict):
+    prefix: str = "companion"
+    vehicle: str = "sitl"
+    connect: list[str] = Field(default_factory=list)
+    listen: list[str] = Field(default_factory=list)
+    mode: Literal["peer", "client", "router"] = "peer"
+    multicast_scouting: bool = False
+
+
+class Config(_Strict):
+    vehicle: VehicleConfig
+    inputs: InputsConfig = InputsConfig()
+    safety: SafetyConfig = SafetyConfig()
+    exploration: ExplorationConfig = ExplorationConfig()
+    zenoh: ZenohConfig | None = None
+
+
+def load_config(path: Path) -> Config:
+    """Read and validate a config file; :class:`ConfigError` names the file and every problem."""
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror}") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    try:
+        config = Config.model_validate(raw)
+    except ValidationError as err:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors())
+        raise ConfigError(f"{path}: {problems}") from None
+    needs_zenoh = "zenoh" in (config.inputs.odometry, config.inputs.scan, config.inputs.loop_closure)
+    if needs_zenoh and config.zenoh is None:
+        raise ConfigError(f"{path}: inputs come from zenoh but there is no zenoh section")
+    if config.vehicle.control == "mavsdk" and not config.vehicle.mavsdk_url:
+        raise ConfigError(f"{path}: vehicle.control is mavsdk but vehicle.mavsdk_url is not set")
+    return config
