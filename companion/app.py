@@ -56,12 +56,29 @@ async def run_service(config: Config, report_path: Path | None) -> int:
         inputs: list[InputSource] = []
         if config.inputs.odometry == "mavlink" or config.inputs.scan == "mavlink":
             inputs.append(_MavlinkInputs(link, config))
-        if config.zenoh is not None and "zenoh" in (
-            config.inputs.odometry,
-            config.inputs.scan,
-            config.inputs.loop_closure,
-        ):
-            raise CompanionError("zenoh inputs are not available in this build yet")
+        outputs = None
+        if config.zenoh is not None:
+            from companion.links.zenoh_keys import Keys
+            from companion.links.zenoh_link import ZenohInputs, ZenohOutputs, ZenohSettings, open_session
+
+            z = config.zenoh
+            session = open_session(
+                ZenohSettings(z.mode, tuple(z.connect), tuple(z.listen), z.multicast_scouting, dict(z.overrides))
+            )
+            closers.insert(0, _SessionCloser(session))
+            keys = Keys(z.prefix, z.vehicle)
+            i = config.inputs
+            streams = {
+                n
+                for n, src in (("odometry", i.odometry), ("scan", i.scan), ("loop_closure", i.loop_closure))
+                if src == "zenoh"
+            }
+            if streams:
+                zin = ZenohInputs(session, keys, streams)
+                closers.append(zin)
+                inputs.append(zin)
+            outputs = ZenohOutputs(session, keys)
+            closers.append(outputs)
         service = Service(
             ServiceSettings(
                 altitude_m=v.altitude_m,
@@ -72,6 +89,7 @@ async def run_service(config: Config, report_path: Path | None) -> int:
             ),
             inputs,
             control,
+            on_status=None if outputs is None else _publisher(outputs),
         )
         task = asyncio.create_task(service.run())
         loop = asyncio.get_running_loop()
@@ -110,3 +128,27 @@ class _MavlinkInputs:
             on_odometry if i.odometry == "mavlink" else None,
             on_scan if i.scan == "mavlink" else None,
         )
+
+
+class _SessionCloser:
+    def __init__(self, session: Any) -> None:
+        self._session = session
+
+    async def close(self) -> None:
+        self._session.close()
+
+
+def _publisher(outputs: Any) -> Any:
+    def publish(service: Service) -> None:
+        h = service.health
+        health = {
+            "state": h.state.value,
+            "odometry_count": h.odometry_count,
+            "scan_count": h.scan_count,
+            "loop_closure_count": h.loop_closure_count,
+            "rejected": dict(h.rejected),
+            "step_ms_last": round(service.step_ms[-1], 3) if service.step_ms else None,
+        }
+        outputs.update(h.state.value, h.reason, health, service.explorer.map, service.setpoint)
+
+    return publish

@@ -7,7 +7,7 @@ errors, so a typo never silently falls back to a default.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -56,6 +56,7 @@ class ZenohConfig(_Strict):
     listen: list[str] = Field(default_factory=list)
     mode: Literal["peer", "client", "router"] = "peer"
     multicast_scouting: bool = False
+    overrides: dict[str, Any] = Field(default_factory=dict, description="other zenoh config paths, e.g. TLS")
 
 
 class Config(_Strict):

@@ -38,6 +38,16 @@ def _parser() -> argparse.ArgumentParser:
         default=2.0,
         help="ArduPilot flavour: seconds after boot before arming is possible (real SITL: about 40)",
     )
+    run.add_argument(
+        "--zenoh",
+        nargs="?",
+        const="tcp/127.0.0.1:7447",
+        metavar="ENDPOINT",
+        help="also publish scans, odometry and loop closures on Zenoh, listening on ENDPOINT "
+        "(default tcp/127.0.0.1:7447; multicast scouting off)",
+    )
+    run.add_argument("--zenoh-prefix", default="companion", help="key prefix (default companion)")
+    run.add_argument("--vehicle-name", default="sitl", help="vehicle name in the keys (default sitl)")
     run.add_argument("--report", type=Path, help="write the ground-truth report (coverage, collisions) here on exit")
     return parser
 
@@ -81,7 +91,26 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("sitl").info(
         "%s vehicle on %s, map %s, speed-up %.1f", flavour.value, ", ".join(urls), args.map, args.speedup
     )
-    vehicle.run()
+    session = None
+    if args.zenoh:
+        from companion.errors import CompanionError
+        from companion.links.zenoh_keys import Keys
+        from companion.links.zenoh_link import ZenohSettings, open_session
+        from sitl.zenoh_sensor import ZenohSensorPublisher
+
+        try:
+            session = open_session(ZenohSettings(listen=(args.zenoh,)))
+        except CompanionError as err:
+            print(f"sitl: {err}", file=sys.stderr)
+            return 2
+        publisher = ZenohSensorPublisher(session, Keys(args.zenoh_prefix, args.vehicle_name))
+        vehicle.on_frame = lambda frame: publisher.publish(frame, vehicle.local_estimate)
+        logging.getLogger("sitl").info("publishing sensors on Zenoh, listening on %s", args.zenoh)
+    try:
+        vehicle.run()
+    finally:
+        if session is not None:
+            session.close()
     report = vehicle.report()
     if args.report:
         args.report.parent.mkdir(parents=True, exist_ok=True)

@@ -105,6 +105,11 @@ class MavlinkVehicle:
         s = self.start
         return Pose2(estimate.x_m - s.x_m, estimate.y_m - s.y_m, estimate.yaw_rad)
 
+    @property
+    def local_estimate(self) -> Pose2:
+        """The vehicle's estimate in its local frame (the frame of LOCAL_POSITION_NED, in core axes)."""
+        return self._local(self.frame.odometry.pose)
+
     def _from_local(self, local: Pose2) -> Pose2:
         s = self.start
         return Pose2(local.x_m + s.x_m, local.y_m + s.y_m, local.yaw_rad)

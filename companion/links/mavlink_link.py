@@ -90,17 +90,22 @@ class MavlinkLink:
         """Open the connection and wait for the autopilot's heartbeat."""
         self._loop = asyncio.get_running_loop()
         s = self.settings
-        try:
-            self._conn = await asyncio.to_thread(
-                mavutil.mavlink_connection,
-                s.url,
-                baud=s.baud,
-                source_system=1,
-                source_component=COMPANION_COMPONENT_ID,
-                autoreconnect=True,
-            )
-        except (OSError, ValueError) as err:
-            raise LinkError(f"cannot open MAVLink connection {s.url!r}: {err}") from None
+        end = time.monotonic() + s.connect_timeout_s
+        while True:  # a TCP server (ArduPilot SITL) may not be listening yet
+            try:
+                self._conn = await asyncio.to_thread(
+                    mavutil.mavlink_connection,
+                    s.url,
+                    baud=s.baud,
+                    source_system=1,
+                    source_component=COMPANION_COMPONENT_ID,
+                    autoreconnect=True,
+                )
+                break
+            except (OSError, ValueError) as err:
+                if time.monotonic() >= end:
+                    raise LinkError(f"cannot open MAVLink connection {s.url!r}: {err}") from None
+                await asyncio.sleep(0.5)
         self._thread = threading.Thread(target=self._read, name="mavlink-reader", daemon=True)
         self._thread.start()
         self._tasks.append(asyncio.create_task(self._heartbeats()))

@@ -1,0 +1,73 @@
+"""Start ``sitl run`` (and other commands) as subprocesses for tests: free loopback ports, logs
+piped into the test log, always stopped."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+log = logging.getLogger("tests.subprocess")
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _pipe(stream: object, name: str) -> None:
+    for line in iter(stream.readline, ""):  # type: ignore[attr-defined]
+        log.info("[%s] %s", name, line.rstrip())
+
+
+@contextmanager
+def running(args: list[str], name: str) -> Iterator[subprocess.Popen[str]]:
+    """Run ``python -m <args>`` from the repository; terminate (then kill) it on exit."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    reader = threading.Thread(target=_pipe, args=(proc.stdout, name), daemon=True)
+    reader.start()
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+        reader.join(2)
+
+
+@contextmanager
+def sitl_vehicle(
+    autopilot: str,
+    report: Path,
+    speedup: float = 10.0,
+    map_path: Path = ROOT / "config/maps/room.geojson",
+    extra: tuple[str, ...] = (),
+) -> Iterator[str]:
+    """A ``sitl run`` vehicle on a free loopback port; yields the companion's connection URL."""
+    if autopilot == "px4":
+        port = free_port()
+        vehicle_url, companion_url = f"udpout:127.0.0.1:{port}", f"udpin:127.0.0.1:{port}"
+    else:
+        port = free_port(socket.SOCK_STREAM)
+        vehicle_url, companion_url = f"tcpin:127.0.0.1:{port}", f"tcp:127.0.0.1:{port}"
+    args = ["sitl.cli", "run", "--map", str(map_path), "--autopilot", autopilot, "--mavlink", vehicle_url]
+    args += ["--speedup", str(speedup), "--seed", "1", "--report", str(report), *extra]
+    with running(args, f"sitl-{autopilot}"):
+        yield companion_url

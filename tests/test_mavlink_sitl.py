@@ -1,0 +1,148 @@
+"""MAVLink end to end over UDP/TCP loopback: the ``sitl run`` vehicle as PX4 or ArduPilot, the
+companion's link and service, and MAVSDK as a standard client."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from companion.core.messages import Setpoint
+from companion.links.base import CommandRefused
+from companion.links.mavlink_link import PX4_MAIN_OFFBOARD, MavlinkLink, MavlinkSettings
+from sitl.autopilot import px4_custom_mode
+from tests.sitl_process import ROOT, free_port, sitl_vehicle
+
+SPEEDUP = 10.0
+
+
+def _link(url: str) -> MavlinkLink:
+    # Setpoints at 10 Hz of simulated time, as 20 Hz would be on a real-time vehicle.
+    return MavlinkLink(MavlinkSettings(url, setpoint_rate_hz=10.0 * SPEEDUP, connect_timeout_s=20.0))
+
+
+async def _until(condition, timeout_s: float) -> bool:  # type: ignore[no-untyped-def]
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if condition():
+            return True
+        await asyncio.sleep(0.02)
+    return bool(condition())
+
+
+def test_px4_refuses_offboard_without_a_setpoint_stream(tmp_path: Path) -> None:
+    async def scenario() -> None:
+        with sitl_vehicle("px4", tmp_path / "sitl.json", SPEEDUP) as url:
+            link = _link(url)
+            await link.connect()
+            try:
+                with pytest.raises(CommandRefused) as refused:
+                    await link._set_mode("OFFBOARD", PX4_MAIN_OFFBOARD)
+                assert refused.value.result == "MAV_RESULT_TEMPORARILY_REJECTED"
+                assert any("offboard" in r.lower() for r in refused.value.reasons)
+                assert link.custom_mode != px4_custom_mode("OFFBOARD")
+            finally:
+                await link.close()
+
+    asyncio.run(scenario())
+
+
+def test_px4_falls_back_to_hold_when_the_companion_stops_streaming(tmp_path: Path) -> None:
+    async def scenario() -> None:
+        with sitl_vehicle("px4", tmp_path / "sitl.json", SPEEDUP) as url:
+            link = _link(url)
+            await link.connect()
+            try:
+                got_odometry: list[Setpoint] = []
+                link.subscribe(on_odometry=lambda o: got_odometry.append(Setpoint(o.pose.x_m, o.pose.y_m, 0.0)))
+                assert await _until(lambda: bool(got_odometry), 5.0)
+                await link.take_off(1.5, Setpoint(got_odometry[-1].x_m, got_odometry[-1].y_m, 0.0))
+                assert link.armed and link.custom_mode == px4_custom_mode("OFFBOARD")
+                assert link.height_m > 1.2
+                await link._stop_stream()
+                # COM_OF_LOSS_T is 1 s of vehicle time; then COM_OBL_RC_ACT=0 without RC: Hold.
+                assert await _until(lambda: link.custom_mode == px4_custom_mode("AUTO.LOITER"), 3.0)
+                assert link.armed
+            finally:
+                await link.close()
+
+    asyncio.run(scenario())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_companion_run_explores_room_over_mavlink(tmp_path: Path, autopilot: str) -> None:
+    sitl_report = tmp_path / "sitl.json"
+    report = tmp_path / "companion.json"
+    with sitl_vehicle(autopilot, sitl_report, SPEEDUP) as url:
+        config = tmp_path / "config.yaml"
+        config.write_text(
+            f"vehicle:\n  mavlink: {url}\n  setpoint_rate_hz: {10 * SPEEDUP}\n  arm_timeout_s: 30\n"
+            "exploration:\n  max_time_s: 170\n"
+        )
+        run = subprocess.run(
+            [sys.executable, "-m", "companion.cli", "run", "--config", str(config), "--report", str(report)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert report.exists(), run.stderr[-3000:]
+        time.sleep(0.5)
+    truth = json.loads(sitl_report.read_text())
+    result = json.loads(report.read_text())
+    assert truth["collisions"] == 0
+    assert truth["coverage"] >= 0.99, (truth, result, run.stderr[-2000:])
+    assert not truth["armed"], "the companion must leave the vehicle landed"
+    assert result["state"] == "done"
+    assert result["inputs"]["odometry"] > 1000 and result["inputs"]["scans"] > 1000
+    assert result["keyframes"] > 20
+
+
+def test_mavsdk_connects_arms_and_flies_an_offboard_setpoint(tmp_path: Path) -> None:
+    from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+    from mavsdk.asyncio.plugins.action import ActionAsync
+    from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw
+    from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+    port = free_port()
+
+    async def scenario() -> None:
+        config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+        async with Mavsdk(config) as mavsdk:
+            await mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+            with sitl_vehicle("px4", tmp_path / "sitl.json", 2.0, extra=("--noise-scale", "0")):
+                system = await mavsdk.first_autopilot(timeout_s=20.0)
+                assert system is not None
+                action, offboard, telemetry = ActionAsync(system), OffboardAsync(system), TelemetryAsync(system)
+                target = PositionNedYaw(1.0, 0.5, -1.5, 45.0)
+                await offboard.set_position_ned(target)
+                await offboard.start()
+                await action.arm()
+                reached = False
+                end = time.monotonic() + 20.0
+                async for pv in telemetry.subscribe_position_velocity_ned():
+                    p = pv.position
+                    if math.hypot(p.north_m - 1.0, p.east_m - 0.5) < 0.2 and abs(p.down_m + 1.5) < 0.2:
+                        reached = True
+                        break
+                    if time.monotonic() > end:
+                        break
+                assert reached
+                await action.land()
+
+    # sitl_vehicle picks its own port: point it at the one MAVSDK listens on instead.
+    import tests.sitl_process as sp
+
+    original = sp.free_port
+    sp.free_port = lambda kind=None: port  # type: ignore[assignment,misc]
+    try:
+        asyncio.run(scenario())
+    finally:
+        sp.free_port = original
