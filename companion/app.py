@@ -102,6 +102,10 @@ async def run_service(config: Config, report_path: Path | None) -> int:
         finally:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.remove_signal_handler(sig)
+        for source in inputs:
+            drops = getattr(source, "drops", None)
+            if drops is not None:
+                report["inputs"]["rejected"].update(drops.counts)
     except CompanionError as err:
         log.error("%s", err)
         report = {"termination": "error", "reason": str(err)}

@@ -57,6 +57,18 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--config", required=True, type=Path, help="YAML config (see config/*.yaml)")
     run.add_argument("--report", type=Path, help="write the JSON report here at the end")
     run.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    mon = sub.add_parser("monitor", help="watch the companion's (and sensors') Zenoh keys")
+    mon.add_argument("keyexpr", nargs="?", default="companion/**", help="key expression (default companion/**)")
+    mon.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint, repeatable (default tcp/127.0.0.1:7447 and tcp/127.0.0.1:7448: "
+        "sitl run --zenoh and the companion in config/sitl-zenoh.yaml)",
+    )
+    mon.add_argument("--echo", metavar="KEY", help="print the samples of KEY as they arrive")
+    mon.add_argument("--duration", type=_positive(float), help="stop after this many seconds")
+    mon.add_argument("--once", action="store_true", help="print the table once (after up to 3 s) and exit")
     return parser
 
 
@@ -144,6 +156,11 @@ def main(argv: list[str] | None = None) -> int:
             return _sim(args, console)
         if args.command == "run":
             return _run(args)
+        if args.command == "monitor":
+            from companion.monitor import run_monitor
+
+            connect = args.connect or ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"]
+            return run_monitor(args.keyexpr, connect, args.duration, args.once, args.echo, console)
     except (SitlError, CompanionError) as exc:
         err.print(f"[red]error:[/] {exc}")
         return 2
