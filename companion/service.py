@@ -163,14 +163,14 @@ class Service:
             self.termination = await self._explore()
         except asyncio.CancelledError:
             self.termination = "stopped"
-            self._set_state(MissionState.FAILED, "stopped by signal")
             await self._safe_stop(airborne)
+            self._set_state(MissionState.FAILED, "stopped by signal")
             raise
         except (CompanionError, CoreError) as err:
             self.termination = "error"
-            self._set_state(MissionState.FAILED, str(err))
             log.error("%s", err)
             await self._safe_stop(airborne)
+            self._set_state(MissionState.FAILED, str(err))
             return self.report()
         await self._safe_stop(airborne, land=True)
         self._set_state(MissionState.DONE, self.termination)

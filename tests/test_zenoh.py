@@ -52,8 +52,14 @@ def test_payloads_round_trip() -> None:
         (b'{"schema": 1, "type": "odometry", "stamp_s": 1.0, "pose": {"x_m": 1', "malformed"),  # truncated
         (b'{"schema": 2, "type": "odometry"}', "schema"),
         (b'{"schema": 1, "type": "scan"}', "type"),
-        (b'{"schema": 1, "type": "odometry", "stamp_s": 1.0, "pose": {"x_m": NaN, "y_m": 0, "yaw_rad": 0}}', "malformed"),
-        (b'{"schema": 1, "type": "odometry", "stamp_s": 1e999, "pose": {"x_m": 0, "y_m": 0, "yaw_rad": 0}}', "non_finite"),
+        (
+            b'{"schema": 1, "type": "odometry", "stamp_s": 1.0, "pose": {"x_m": NaN, "y_m": 0, "yaw_rad": 0}}',
+            "malformed",
+        ),
+        (
+            b'{"schema": 1, "type": "odometry", "stamp_s": 1e999, "pose": {"x_m": 0, "y_m": 0, "yaw_rad": 0}}',
+            "non_finite",
+        ),
         (b'{"schema": 1, "type": "odometry", "stamp_s": 1.0}', "missing"),
         (b" " * (MAX_PAYLOAD_BYTES + 1), "oversized"),
     ],
@@ -149,7 +155,17 @@ def test_companion_explores_room_with_zenoh_sensors_monitored_and_garbage_droppe
 def test_monitor_says_when_nothing_is_reachable() -> None:
     port = free_port(socket.SOCK_STREAM)
     run = subprocess.run(
-        [sys.executable, "-m", "companion.cli", "monitor", "--once", "--duration", "1", "--connect", f"tcp/127.0.0.1:{port}"],
+        [
+            sys.executable,
+            "-m",
+            "companion.cli",
+            "monitor",
+            "--once",
+            "--duration",
+            "1",
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -1,0 +1,178 @@
+"""Edge conversions and the service's safety behaviour, without any network."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.config import load_config
+from companion.core.geometry import Pose2
+from companion.core.messages import DepthScan, Odometry, Setpoint
+from companion.errors import ConfigError
+from companion.links.base import LinkError
+from companion.links.frames import core_to_ned, ned_to_core, quaternion_from_yaw, yaw_from_quaternion
+from companion.links.obstacle_distance import (
+    MAV_FRAME_BODY_FRD,
+    MAV_FRAME_LOCAL_NED,
+    UINT16_MAX,
+    ObstacleDistance,
+    decode_scan,
+    encode_scan,
+)
+from companion.service import MissionState, Service, ServiceSettings
+
+
+def test_ned_and_core_frames_are_inverse_and_right_handed() -> None:
+    # Facing north in NED (yaw 0) is facing +y in the core frame (yaw pi/2); east is +x.
+    p = ned_to_core(2.0, 1.0, 0.0)
+    assert (p.x_m, p.y_m) == (1.0, 2.0) and math.isclose(p.yaw_rad, math.pi / 2)
+    for yaw in np.linspace(-3.0, 3.0, 13):
+        n, e, y = core_to_ned(0.3, -0.7, float(yaw))
+        back = ned_to_core(n, e, y)
+        assert math.isclose(back.x_m, 0.3) and math.isclose(back.y_m, -0.7)
+        assert math.isclose(math.cos(back.yaw_rad - yaw), 1.0, abs_tol=1e-12)
+        assert math.isclose(yaw_from_quaternion(*quaternion_from_yaw(float(yaw))), float(yaw), abs_tol=1e-12)
+
+
+def test_obstacle_distance_round_trip_keeps_bearings_and_ranges() -> None:
+    bearings = np.linspace(-math.pi / 4, math.pi / 4, 64)
+    ranges = 1.0 + np.arange(64) * 0.05
+    ranges[5] = np.inf  # no return
+    scan = DepthScan(1.5, bearings, ranges, 5.0, 0.1)
+    msg = encode_scan(scan, 1_500_000)
+    assert msg.frame == MAV_FRAME_BODY_FRD and len(msg.distances_cm) == 72
+    assert msg.distances_cm[64:] == (UINT16_MAX,) * 8
+    # First bin is the leftmost ray, at a negative (counter-clockwise) FRD angle.
+    assert math.isclose(msg.angle_offset_deg, -45.0) and msg.distances_cm[0] == round(ranges[-1] * 100)
+    back = decode_scan(msg, 1.5)
+    np.testing.assert_allclose(back.bearings_rad, bearings, atol=1e-6)
+    finite = np.isfinite(ranges)
+    np.testing.assert_allclose(back.ranges_m[finite], ranges[finite], atol=0.006)
+    assert np.isinf(back.ranges_m[5]) and back.ranges_m[5] > 0
+
+
+def test_wide_scans_keep_the_nearest_return_per_bin() -> None:
+    bearings = np.linspace(-1.0, 1.0, 144)
+    ranges = np.full(144, 4.0)
+    ranges[10] = 0.7
+    msg = encode_scan(DepthScan(0.0, bearings, ranges, 5.0), 0)
+    assert min(d for d in msg.distances_cm if d != UINT16_MAX) == 70
+    assert sum(d != UINT16_MAX for d in msg.distances_cm) == 72
+
+
+def test_north_aligned_obstacle_distance_needs_and_uses_the_heading() -> None:
+    distances = (300,) * 8 + (UINT16_MAX,) * 64
+    msg = ObstacleDistance(0, distances, 5.0, 80.0, 10, 500, MAV_FRAME_LOCAL_NED)
+    with pytest.raises(Exception, match="heading"):
+        decode_scan(msg, 0.0)
+    # Heading east (NED yaw 90 deg): a return at 90..125 deg from north is 0..35 deg to the right.
+    scan = decode_scan(msg, 0.0, math.radians(90.0))
+    assert math.isclose(float(scan.bearings_rad.min()), -math.radians(25.0), abs_tol=1e-9)
+    assert math.isclose(float(scan.bearings_rad.max()), math.radians(10.0), abs_tol=1e-9)
+
+
+def test_bad_obstacle_distance_is_refused() -> None:
+    ok = (100,) * 72
+    for bad in (
+        ObstacleDistance(0, ok, 0.0, 0.0, 10, 500),
+        ObstacleDistance(0, ok, math.nan, 0.0, 10, 500),
+        ObstacleDistance(0, ok, 1.0, 0.0, 600, 500),
+        ObstacleDistance(0, (UINT16_MAX,) * 72, 1.0, 0.0, 10, 500),
+        ObstacleDistance(0, ok, 1.0, 0.0, 10, 500, frame=7),
+    ):
+        with pytest.raises(Exception):  # noqa: B017 - ScanError, any message
+            decode_scan(bad, 0.0, 0.0)
+
+
+def test_config_errors_name_the_file_and_the_problem(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("vehicle:\n  mavlink: udpin:127.0.0.1:1\n  setpoint_rate_hz: 1\n  altitud_m: 3\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(bad)
+    assert "bad.yaml" in str(err.value) and "setpoint_rate_hz" in str(err.value) and "altitud_m" in str(err.value)
+    missing = tmp_path / "zenoh.yaml"
+    missing.write_text("vehicle:\n  mavlink: udpin:127.0.0.1:1\ninputs:\n  scan: zenoh\n")
+    with pytest.raises(ConfigError, match="no zenoh section"):
+        load_config(missing)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "absent.yaml")
+    for shipped in Path("config").glob("sitl-*.yaml"):
+        assert load_config(shipped).vehicle.mavlink
+
+
+class FakeVehicle:
+    """Input source and flight control in one, recording what the service asked for."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.targets: list[Setpoint] = []
+        self.handlers: tuple = ()  # type: ignore[type-arg]
+
+    def subscribe(self, on_odometry=None, on_scan=None, on_loop_closure=None) -> None:  # type: ignore[no-untyped-def]
+        self.handlers = (on_odometry, on_scan)
+
+    async def take_off(self, altitude_m: float, hold: Setpoint) -> None:
+        self.calls.append("take_off")
+
+    def set_target(self, setpoint: Setpoint) -> None:
+        if not setpoint.is_finite():
+            raise LinkError("non-finite")
+        self.targets.append(setpoint)
+
+    async def hold(self) -> None:
+        self.calls.append("hold")
+
+    async def land(self) -> None:
+        self.calls.append("land")
+
+    async def close(self) -> None:
+        pass
+
+
+def _scan(stamp: float) -> DepthScan:
+    return DepthScan(stamp, np.linspace(-0.7, 0.7, 32), np.full(32, 3.0), 5.0)
+
+
+def test_service_lands_when_scans_go_stale() -> None:
+    async def scenario() -> tuple[Service, FakeVehicle, dict]:  # type: ignore[type-arg]
+        fake = FakeVehicle()
+        service = Service(ServiceSettings(input_timeout_s=0.3, startup_timeout_s=2.0), [fake], fake)
+        task = asyncio.create_task(service.run())
+        await asyncio.sleep(0)
+        on_odom, on_scan = fake.handlers
+        for i in range(10):  # inputs flow for a while, then the scans stop, odometry goes on
+            on_odom(Odometry(i * 0.1, Pose2(0.0, 0.0, 0.0)))
+            on_scan(_scan(i * 0.1))
+            await asyncio.sleep(0.05)
+        for i in range(10, 30):
+            on_odom(Odometry(i * 0.1, Pose2(0.0, 0.0, 0.0)))
+            await asyncio.sleep(0.05)
+        return service, fake, await asyncio.wait_for(task, 5.0)
+
+    service, fake, report = asyncio.run(scenario())
+    assert fake.calls == ["take_off", "land"]
+    assert fake.targets, "it flew before the scans stopped"
+    assert report["termination"] == "error" and "scans stale" in report["reason"]
+    assert service.health.state is MissionState.FAILED
+
+
+def test_service_never_takes_off_without_inputs() -> None:
+    async def scenario() -> tuple[FakeVehicle, dict]:  # type: ignore[type-arg]
+        fake = FakeVehicle()
+        service = Service(ServiceSettings(startup_timeout_s=0.3), [fake], fake)
+        return fake, await service.run()
+
+    fake, report = asyncio.run(scenario())
+    assert fake.calls == []
+    assert "no odometry and no scans" in report["reason"]
+
+
+def test_service_rejects_non_finite_odometry() -> None:
+    fake = FakeVehicle()
+    service = Service(ServiceSettings(), [fake], fake)
+    service.on_odometry(Odometry(0.0, Pose2(math.nan, 0.0, 0.0)))
+    assert service.health.rejected == {"odometry": 1} and service.health.odometry_count == 0
