@@ -75,6 +75,8 @@ class MavlinkLink:
         self._on_odometry: OdometryHandler | None = None
         self._on_scan: ScanHandler | None = None
         self._yaw_ned: float | None = None
+        self._attitudes: deque[tuple[float, float]] = deque(maxlen=16)  # (stamp s, yaw NED)
+        self._pending_position: tuple[float, float, float] | None = None
         self._odometry_seen_s = -math.inf
         self._last_input_s: dict[str, float] = {}
         self._target: tuple[float, float, float] | None = None  # north, east, yaw (NED)
@@ -180,11 +182,14 @@ class MavlinkLink:
             self._odometry(msg, now)
         elif kind == "LOCAL_POSITION_NED":
             self.height_m = -float(msg.z)
-            if now - self._odometry_seen_s > 1.0 and self._yaw_ned is not None:
-                self._publish_odometry(msg.time_boot_ms / 1e3, msg.x, msg.y, self._yaw_ned, 0, now)
+            if now - self._odometry_seen_s > 1.0:
+                self._pending_position = (msg.time_boot_ms / 1e3, float(msg.x), float(msg.y))
+                self._pair_position_with_attitude(now)
         elif kind == "ATTITUDE":
             if math.isfinite(msg.yaw):
                 self._yaw_ned = float(msg.yaw)
+                self._attitudes.append((msg.time_boot_ms / 1e3, float(msg.yaw)))
+                self._pair_position_with_attitude(now)
         elif kind == "OBSTACLE_DISTANCE":
             self._scan(msg, now)
         elif kind == "COMMAND_ACK":
@@ -215,6 +220,24 @@ class MavlinkLink:
         if msg.get_srcSystem() == self.target_system and msg.get_srcComponent() == self.target_component:
             self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             self.custom_mode = int(msg.custom_mode)
+
+    def _pair_position_with_attitude(self, now: float) -> None:
+        """Odometry from LOCAL_POSITION_NED and the heading at the same instant (interpolated
+        between ATTITUDE samples), so a turn does not skew the pose; waits for the attitude."""
+        if self._pending_position is None or not self._attitudes:
+            return
+        stamp, north, east = self._pending_position
+        newest_t, newest_yaw = self._attitudes[-1]
+        if newest_t < stamp and stamp - newest_t < 0.2:
+            return  # the attitude for this instant has not arrived yet
+        yaw = newest_yaw
+        for (t0, y0), (t1, y1) in zip(list(self._attitudes)[:-1], list(self._attitudes)[1:], strict=True):
+            if t0 <= stamp <= t1:
+                w = 0.0 if t1 == t0 else (stamp - t0) / (t1 - t0)
+                yaw = y0 + w * math.remainder(y1 - y0, 2.0 * math.pi)
+                break
+        self._pending_position = None
+        self._publish_odometry(stamp, north, east, yaw, 0, now)
 
     def _odometry(self, msg: Any, now: float) -> None:
         if msg.frame_id not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD):
