@@ -12,7 +12,7 @@ from pathlib import Path
 from types import FrameType
 
 from sitl.errors import SitlError
-from sitl.world import load_world
+from sitl.world import World, load_world
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -49,13 +49,53 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--zenoh-prefix", default="companion", help="key prefix (default companion)")
     run.add_argument("--vehicle-name", default="sitl", help="vehicle name in the keys (default sitl)")
     run.add_argument("--report", type=Path, help="write the ground-truth report (coverage, collisions) here on exit")
+    sensor = sub.add_parser("sensor", help="only the depth sensor and SLAM, following an external autopilot")
+    sensor.add_argument("--map", required=True, type=Path, help="GeoJSON map; the autopilot's origin is its start")
+    sensor.add_argument("--pose-from", required=True, metavar="URL", help="pymavlink URL of the autopilot")
+    sensor.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="Zenoh listen endpoint")
+    sensor.add_argument("--zenoh-prefix", default="companion")
+    sensor.add_argument("--vehicle-name", default="sitl")
+    sensor.add_argument("--seed", type=int, default=1)
     return parser
+
+
+def _sensor(args: argparse.Namespace, world: World) -> int:
+    from companion.errors import CompanionError
+    from companion.links.zenoh_keys import Keys
+    from companion.links.zenoh_link import ZenohSettings, open_session
+    from sitl.sensor_node import SensorNode
+
+    try:
+        session = open_session(ZenohSettings(listen=(args.zenoh,)))
+    except CompanionError as err:
+        print(f"sitl: {err}", file=sys.stderr)
+        return 2
+    try:
+        node = SensorNode(world, args.pose_from, session, Keys(args.zenoh_prefix, args.vehicle_name), args.seed)
+
+        def _stop(signum: int, frame: FrameType | None) -> None:
+            node.stop()
+
+        signal.signal(signal.SIGTERM, _stop)
+        signal.signal(signal.SIGINT, _stop)
+        logging.getLogger("sitl").info("sensor following %s, publishing on %s", args.pose_from, args.zenoh)
+        try:
+            node.run()
+        except TimeoutError as err:
+            print(f"sitl: {args.pose_from}: {err}", file=sys.stderr)
+            return 2
+        finally:
+            node.close()
+    finally:
+        session.close()
+    logging.getLogger("sitl").info("sensor stopped after %d scans", node.scans)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
-    if args.speedup <= 0:
+    if args.command == "run" and args.speedup <= 0:
         print("sitl: --speedup must be positive", file=sys.stderr)
         return 2
     try:
@@ -63,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     except SitlError as err:
         print(f"sitl: {err}", file=sys.stderr)
         return 2
+    if args.command == "sensor":
+        return _sensor(args, world)
     from sitl.autopilot import Flavour
     from sitl.mavlink_vehicle import DEFAULT_URL, MavlinkVehicle, VehicleOptions
 

@@ -176,3 +176,20 @@ def test_service_rejects_non_finite_odometry() -> None:
     service = Service(ServiceSettings(), [fake], fake)
     service.on_odometry(Odometry(0.0, Pose2(math.nan, 0.0, 0.0)))
     assert service.health.rejected == {"odometry": 1} and service.health.odometry_count == 0
+
+
+def test_commands_give_clear_errors_not_tracebacks(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("vehicle: [1, 2]\n")
+    for cmd in (
+        ["companion.cli", "run", "--config", str(bad)],
+        ["sitl.cli", "run", "--map", str(tmp_path / "missing.geojson")],
+        ["sitl.cli", "sensor", "--map", str(tmp_path / "missing.geojson"), "--pose-from", "udpin:127.0.0.1:1"],
+    ):
+        run = subprocess.run([sys.executable, "-m", *cmd], capture_output=True, text=True, timeout=60)
+        assert run.returncode == 2, run.stderr
+        assert "Traceback" not in run.stderr + run.stdout
+        assert ("bad.yaml" in run.stderr + run.stdout) or ("missing.geojson" in run.stderr)

@@ -174,3 +174,38 @@ def test_monitor_says_when_nothing_is_reachable() -> None:
     assert run.returncode == 1
     assert "nothing reachable" in run.stdout
     assert math.isfinite(port)
+
+
+@pytest.mark.slow
+def test_sitl_sensor_follows_an_external_autopilot_and_the_companion_explores(tmp_path: Path) -> None:
+    """The real-firmware set-up: an autopilot flies (here `sitl run` without sensors on the bus),
+    `sitl sensor` follows its pose and publishes scans on Zenoh, the companion explores."""
+    sensor_port, zenoh_port = free_port(), free_port(socket.SOCK_STREAM)
+    zenoh_ep = f"tcp/127.0.0.1:{zenoh_port}"
+    speedup = 10.0
+    report, sitl_report = tmp_path / "companion.json", tmp_path / "sitl.json"
+    extra = ("--mavlink", f"udpout:127.0.0.1:{sensor_port}", "--noise-scale", "0")
+    with sitl_vehicle("px4", sitl_report, speedup, extra=extra) as url:
+        sensor_cmd = ["sitl.cli", "sensor", "--map", str(ROOT / "config/maps/room.geojson")]
+        sensor_cmd += ["--pose-from", f"udpin:127.0.0.1:{sensor_port}", "--zenoh", zenoh_ep]
+        with running(sensor_cmd, "sitl-sensor"):
+            config = tmp_path / "config.yaml"
+            config.write_text(
+                f"vehicle:\n  mavlink: {url}\n  setpoint_rate_hz: {10 * speedup}\n"
+                "inputs:\n  odometry: zenoh\n  scan: zenoh\n  loop_closure: zenoh\n"
+                f"zenoh:\n  connect: ['{zenoh_ep}']\n"
+                "exploration:\n  max_time_s: 600\n"
+            )
+            run = subprocess.run(
+                [sys.executable, "-m", "companion.cli", "run", "--config", str(config), "--report", str(report)],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
+                timeout=150,
+            )
+        time.sleep(0.5)
+    assert run.returncode == 0, run.stderr[-3000:]
+    truth = json.loads(sitl_report.read_text())
+    result = json.loads(report.read_text())
+    assert truth["coverage"] >= 0.99 and truth["collisions"] == 0 and not truth["armed"]
+    assert result["inputs"]["scans"] > 1000 and result["inputs"]["loop_closures"] > 10
