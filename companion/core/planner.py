@@ -56,6 +56,7 @@ class PlannerParams:
     turn_first_rad: float = 0.35
     shortcut_hops: int = 6
     leg_margin_m: float = 0.05
+    stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
 
     @property
     def clearance_m(self) -> float:
@@ -180,7 +181,9 @@ class FrontierPlanner:
             goal.arrived_s = stamp_s
             return Decision(Mode.EXPLORING, Target(gx, gy, look), goal.key, want_keyframe=True)
         if goal.arrived_s is not None and stamp_s - goal.arrived_s >= self.params.settle_s:
-            self._failed(goal.key)
+            # Looked at it from its goal and it stays open: the space is seen, the vertex is stale
+            # (its closing view is not in its neighbourhood). So are its close neighbours.
+            self._set_aside_around(local_map, goal.key)
             self.goal = None
             return None
         if goal.arrived_s is None and stamp_s > goal.deadline_s:
@@ -199,6 +202,14 @@ class FrontierPlanner:
         dist = float(np.hypot(*(c.goal_xy - here)))
         budget = max(self.params.goal_timeout_min_s, 3.0 * dist / self.params.cruise_speed_mps)
         self.goal = _Goal(c.key, (lx, ly), wrap_angle(c.look_rad + pose.yaw_rad), stamp_s, stamp_s + budget)
+
+    def _set_aside_around(self, local_map: LocalMap, key: FrontierKey) -> None:
+        kf = local_map.keyframes[key.keyframe_id]
+        xy = kf.polygon.vertices_xy
+        near = np.hypot(*(xy - xy[key.index]).T) <= self.params.stale_radius_m
+        for i in np.flatnonzero(near & (kf.kinds == 1)):
+            self.set_aside.add(FrontierKey(key.keyframe_id, int(i)))
+        self.set_aside.add(key)
 
     def _failed(self, key: FrontierKey) -> None:
         n = self.attempts.get(key, 0) + 1
