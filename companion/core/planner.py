@@ -56,6 +56,7 @@ class PlannerParams:
     turn_first_rad: float = 0.35
     shortcut_hops: int = 6
     leg_margin_m: float = 0.05
+    side_shift_m: float = 0.5  # sideways goal shift tried from a keyframe's origin
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
 
     @property
@@ -226,6 +227,7 @@ class FrontierPlanner:
         vehicle: Pose2,
         here: FloatArray,
         only_keyframe: int | None = None,
+        dense: bool = False,
     ) -> list[_Candidate]:
         p = self.params
         keys: list[FrontierKey] = []
@@ -246,7 +248,17 @@ class FrontierPlanner:
             normal_pt = v - p.standoff_m * n
             ray_len = np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
             ray_pt = v * np.maximum(ray_len - p.standoff_m, 0.0) / ray_len
-            for pts in (normal_pt, ray_pt):
+            variants = [normal_pt, ray_pt]
+            if dense:
+                # From a keyframe's origin, try harder: goals nearer and farther, and shifted
+                # sideways (a frontier beside a door jamb has its plain goals too close to it).
+                side = np.column_stack((-n[:, 1], n[:, 0]))
+                for back in (0.6 * p.standoff_m, 1.5 * p.standoff_m):
+                    variants.append(v - back * n)
+                for shift in (-p.side_shift_m, p.side_shift_m):
+                    for back in (p.standoff_m, 1.5 * p.standoff_m):
+                        variants.append(v - back * n + shift * side)
+            for pts in variants:
                 goals.append(pose.apply(pts))
                 looks.append(np.arctan2(*pose.rotate(n)[:, ::-1].T))
                 keys.extend(FrontierKey(k, int(i)) for i in idx)
@@ -274,8 +286,10 @@ class FrontierPlanner:
         required: float,
         only_keyframe: int | None = None,
     ) -> _Candidate | None:
-        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe)
-        for c in candidates[: self.params.max_candidates_checked]:
+        dense = only_keyframe is not None
+        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense)
+        limit = self.params.max_candidates_checked * (8 if dense else 1)
+        for c in candidates[:limit]:
             if self._accessible(view, here, c.goal_xy, required):
                 return c
         return None
