@@ -48,6 +48,7 @@ class ServiceSettings:
     startup_timeout_s: float = 60.0
     max_time_s: float = 1800.0
     on_stop: str = "land"
+    progress_period_s: float = 10.0
 
 
 @dataclass
@@ -95,6 +96,7 @@ class Service:
         self.path_length_m = 0.0
         self.setpoint: Setpoint | None = None
         self.termination = ""
+        self._next_progress_s = -math.inf
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -203,6 +205,17 @@ class Service:
                 return "unreachable_frontiers_left" if self.explorer.planner.set_aside else "complete"
             self.setpoint = result.setpoint
             self.control.set_target(result.setpoint)
+            if self._clock() >= self._next_progress_s:
+                self._next_progress_s = self._clock() + self.settings.progress_period_s
+                m = self.explorer.map
+                log.info(
+                    "exploring: %.0f s, %s, %d keyframes, %d open frontier vertices, step p50 %.1f ms",
+                    odom.stamp_s - self._first_odom.stamp_s,
+                    result.mode.value,
+                    len(m),
+                    m.open_frontier_count(),
+                    float(np.percentile(self.step_ms[-200:], 50)),
+                )
             if self.on_status is not None:
                 self.on_status(self)
             if odom.stamp_s - self._first_odom.stamp_s > self.settings.max_time_s:
@@ -241,7 +254,9 @@ class Service:
         if self._odom is not None and self._first_odom is not None:
             elapsed = self._odom.stamp_s - self._first_odom.stamp_s
         return {
+            "map": None,  # unknown to the companion: it explores what it finds
             "planner": "polygon",
+            "seed": None,
             "coverage": None,  # ground truth is the simulator's (sitl run --report)
             "exploration_time_s": round(elapsed, 3),
             "time_to_99_s": None,
