@@ -154,3 +154,32 @@ def test_mavsdk_connects_arms_and_flies_an_offboard_setpoint(tmp_path: Path) -> 
         asyncio.run(scenario())
     finally:
         sp.free_port = original
+
+
+def test_companion_flies_through_the_mavsdk_backend(tmp_path: Path) -> None:
+    """`control: mavsdk`: MAVSDK's Offboard plugin flies, pymavlink reads the inputs; the vehicle
+    serves both endpoints, as PX4 serves its offboard and GCS ports."""
+    mavsdk_port = free_port()
+    speedup = 4.0  # MAVSDK streams setpoints at 20 Hz of wall time
+    sitl_report, report = tmp_path / "sitl.json", tmp_path / "companion.json"
+    extra = ("--mavlink", f"udpout:127.0.0.1:{mavsdk_port}")
+    with sitl_vehicle("px4", sitl_report, speedup, extra=extra) as url:
+        config = tmp_path / "config.yaml"
+        config.write_text(
+            f"vehicle:\n  mavlink: {url}\n  control: mavsdk\n  mavsdk_url: udpin://127.0.0.1:{mavsdk_port}\n"
+            "exploration:\n  max_time_s: 25\n"
+        )
+        run = subprocess.run(
+            [sys.executable, "-m", "companion.cli", "run", "--config", str(config), "--report", str(report)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        time.sleep(0.5)
+    truth = json.loads(sitl_report.read_text())
+    result = json.loads(report.read_text())
+    assert result["termination"] == "timeout" and run.returncode == 1, run.stderr[-2000:]
+    assert result["state"] == "done" and result["keyframes"] > 5
+    assert truth["path_length_m"] > 10.0 and truth["coverage"] > 0.3
+    assert truth["collisions"] == 0 and not truth["armed"] and truth["mode"] == "AUTO.LAND"
