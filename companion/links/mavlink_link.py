@@ -350,7 +350,10 @@ class MavlinkLink:
         """Re-request the streams when inputs stop arriving (early requests after boot can be lost)."""
         while True:
             await asyncio.sleep(2.0)
-            if self.input_age_s("odometry") > 2.0 or self.input_age_s("scan") > 2.0:
+            # Only the inputs taken from this link (scans may come from a camera on Zenoh).
+            odometry_missing = self._on_odometry is not None and self.input_age_s("odometry") > 2.0
+            scans_missing = self._on_scan is not None and self.input_age_s("scan") > 2.0
+            if odometry_missing or scans_missing:
                 await self._request_streams()
 
     # -- flight control -------------------------------------------------------------------------
