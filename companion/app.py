@@ -57,6 +57,7 @@ async def run_service(config: Config, report_path: Path | None) -> int:
         if config.inputs.odometry == "mavlink" or config.inputs.scan == "mavlink":
             inputs.append(_MavlinkInputs(link, config))
         outputs = None
+        drops = None
         if config.zenoh is not None:
             from companion.links.zenoh_keys import Keys
             from companion.links.zenoh_link import ZenohInputs, ZenohOutputs, ZenohSettings, open_session
@@ -77,6 +78,7 @@ async def run_service(config: Config, report_path: Path | None) -> int:
                 zin = ZenohInputs(session, keys, streams)
                 closers.append(zin)
                 inputs.append(zin)
+                drops = zin.drops
             outputs = ZenohOutputs(session, keys)
             closers.append(outputs)
         service = Service(
@@ -89,7 +91,7 @@ async def run_service(config: Config, report_path: Path | None) -> int:
             ),
             inputs,
             control,
-            on_status=None if outputs is None else _publisher(outputs),
+            on_status=None if outputs is None else _publisher(outputs, drops),
         )
         task = asyncio.create_task(service.run())
         loop = asyncio.get_running_loop()
@@ -142,7 +144,7 @@ class _SessionCloser:
         self._session.close()
 
 
-def _publisher(outputs: Any) -> Any:
+def _publisher(outputs: Any, drops: Any) -> Any:
     def publish(service: Service) -> None:
         h = service.health
         health = {
@@ -150,7 +152,7 @@ def _publisher(outputs: Any) -> Any:
             "odometry_count": h.odometry_count,
             "scan_count": h.scan_count,
             "loop_closure_count": h.loop_closure_count,
-            "rejected": dict(h.rejected),
+            "rejected": {**h.rejected, **(drops.counts if drops is not None else {})},
             "step_ms_last": round(service.step_ms[-1], 3) if service.step_ms else None,
         }
         outputs.update(h.state.value, h.reason, health, service.explorer.map, service.setpoint)

@@ -121,7 +121,7 @@ def decode_scan(payload: bytes) -> DepthScan:
     r = np.array([math.inf if v is None else float(v) for v in ranges])
     if np.isnan(r).any():
         raise PayloadError("non_finite", "ranges_m holds NaN")
-    bearings = _number(d, "angle_min_rad") + increment * np.arange(r.size)
+    bearings = (_number(d, "angle_min_rad") + increment * np.arange(r.size)).astype(np.float64)
     try:
         return DepthScan(_number(d, "stamp_s"), bearings, r, _number(d, "range_max_m"), _number(d, "range_min_m"))
     except ScanError as err:
