@@ -147,6 +147,18 @@ class LocalMap:
         self._close_in_grown(view)
         return view
 
+    def close_seen_from(self, frame_id: int, keyframe_id: int, indices: NDArray[np.intp]) -> NDArray[np.bool_]:
+        """Eq. 2.15 for some frontier vertices of any keyframe against ``frame_id``'s grown view,
+        even when that keyframe is not in its neighbourhood (the vehicle went there and looked).
+        Returns which of them were closed."""
+        view = self.view(frame_id)
+        kf = self.keyframes[keyframe_id]
+        pose = view.poses.get(keyframe_id) or self.pose_in(frame_id, keyframe_id)
+        pts = pose.apply(kf.beyond_points(indices, self.params.closing_offset_m))
+        seen: NDArray[np.bool_] = shapely.contains_xy(view.grown, pts[:, 0], pts[:, 1])
+        kf.kinds[indices[seen]] = VertexKind.FREE
+        return seen
+
     def open_frontier_count(self) -> int:
         return int(sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values()))
 

@@ -184,7 +184,7 @@ class FrontierPlanner:
         if goal.arrived_s is not None and stamp_s - goal.arrived_s >= self.params.settle_s:
             # Looked at it from its goal and it stays open: the space is seen, the vertex is stale
             # (its closing view is not in its neighbourhood). So are its close neighbours.
-            self._set_aside_around(local_map, goal.key)
+            self._close_or_set_aside_around(local_map, frame_id, goal.key)
             self.goal = None
             return None
         if goal.arrived_s is None and stamp_s > goal.deadline_s:
@@ -204,13 +204,19 @@ class FrontierPlanner:
         budget = max(self.params.goal_timeout_min_s, 3.0 * dist / self.params.cruise_speed_mps)
         self.goal = _Goal(c.key, (lx, ly), wrap_angle(c.look_rad + pose.yaw_rad), stamp_s, stamp_s + budget)
 
-    def _set_aside_around(self, local_map: LocalMap, key: FrontierKey) -> None:
+    def _close_or_set_aside_around(self, local_map: LocalMap, frame_id: int, key: FrontierKey) -> None:
+        """The frontier and its close neighbours: closed where the view from here saw beyond them
+        (eq. 2.15 against the current view), set aside where it did not."""
         kf = local_map.keyframes[key.keyframe_id]
         xy = kf.polygon.vertices_xy
         near = np.hypot(*(xy - xy[key.index]).T) <= self.params.stale_radius_m
-        for i in np.flatnonzero(near & (kf.kinds == 1)):
-            self.set_aside.add(FrontierKey(key.keyframe_id, int(i)))
-        self.set_aside.add(key)
+        idx = np.flatnonzero(near & (kf.kinds == 1))
+        if idx.size:
+            seen = local_map.close_seen_from(frame_id, key.keyframe_id, idx)
+            for i in idx[~seen]:
+                self.set_aside.add(FrontierKey(key.keyframe_id, int(i)))
+        if kf.kinds[key.index] == 1:
+            self.set_aside.add(key)
 
     def _failed(self, key: FrontierKey) -> None:
         n = self.attempts.get(key, 0) + 1
