@@ -97,6 +97,7 @@ class Service:
         self.setpoint: Setpoint | None = None
         self.termination = ""
         self._next_progress_s = -math.inf
+        self._lost_control = False
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -195,6 +196,9 @@ class Service:
             stale = self._stale()
             if stale:
                 raise CompanionError(f"inputs went stale: {stale}")
+            if not self.control.in_control():
+                self._lost_control = True
+                raise CompanionError("the vehicle left the companion's control (disarmed, crashed or mode changed)")
             odom, scan = self._odom, self._scan
             assert odom is not None and scan is not None
             self._scan = None
@@ -230,8 +234,9 @@ class Service:
         return result
 
     async def _safe_stop(self, airborne: bool, land: bool | None = None) -> None:
-        """Leave the vehicle safe through the autopilot's own modes, never by silence."""
-        if not airborne:
+        """Leave the vehicle safe through the autopilot's own modes, never by silence. When the
+        pilot or the autopilot took the vehicle over, leave it to them."""
+        if not airborne or self._lost_control:
             return
         want_land = land if land is not None else self.settings.on_stop == "land"
         self._set_state(MissionState.LANDING if want_land else MissionState.HOLDING)

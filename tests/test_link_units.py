@@ -111,6 +111,7 @@ class FakeVehicle:
         self.calls: list[str] = []
         self.targets: list[Setpoint] = []
         self.handlers: tuple = ()  # type: ignore[type-arg]
+        self.controlled = True
 
     def subscribe(self, on_odometry=None, on_scan=None, on_loop_closure=None) -> None:  # type: ignore[no-untyped-def]
         self.handlers = (on_odometry, on_scan)
@@ -122,6 +123,9 @@ class FakeVehicle:
         if not setpoint.is_finite():
             raise LinkError("non-finite")
         self.targets.append(setpoint)
+
+    def in_control(self) -> bool:
+        return self.controlled
 
     async def hold(self) -> None:
         self.calls.append("hold")
@@ -193,3 +197,26 @@ def test_commands_give_clear_errors_not_tracebacks(tmp_path: Path) -> None:
         assert run.returncode == 2, run.stderr
         assert "Traceback" not in run.stderr + run.stdout
         assert ("bad.yaml" in run.stderr + run.stdout) or ("missing.geojson" in run.stderr)
+
+
+def test_service_stops_when_the_vehicle_leaves_its_control() -> None:
+    """A crash (disarmed) or a pilot taking over: stop at once, and do not fight them."""
+
+    async def scenario() -> tuple[FakeVehicle, dict]:  # type: ignore[type-arg]
+        fake = FakeVehicle()
+        service = Service(ServiceSettings(input_timeout_s=1.0, startup_timeout_s=2.0), [fake], fake)
+        task = asyncio.create_task(service.run())
+        await asyncio.sleep(0)
+        on_odom, on_scan = fake.handlers
+        for i in range(20):
+            if i == 10:
+                fake.controlled = False
+            on_odom(Odometry(i * 0.1, Pose2(0.0, 0.0, 0.0)))
+            on_scan(_scan(i * 0.1))
+            await asyncio.sleep(0.02)
+        return fake, await asyncio.wait_for(task, 5.0)
+
+    fake, report = asyncio.run(scenario())
+    assert fake.calls == ["take_off"]
+    assert report["termination"] == "error" and "left the companion's control" in report["reason"]
+    assert 5 <= len(fake.targets) <= 11

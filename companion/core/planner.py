@@ -56,6 +56,7 @@ class PlannerParams:
     turn_first_rad: float = 0.35
     shortcut_hops: int = 6
     leg_margin_m: float = 0.05
+    route_timeout_s: float = 30.0  # backtracking without reaching a waypoint for this long fails the target
     side_shift_m: float = 0.5  # sideways goal shift tried from a keyframe's origin
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
 
@@ -119,6 +120,8 @@ class FrontierPlanner:
     set_aside: set[FrontierKey] = field(default_factory=set)
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    _progress_target: int | None = None
+    _progress_s: float = 0.0
 
     def plan(
         self,
@@ -350,6 +353,16 @@ class FrontierPlanner:
         if self.route is None:
             return Decision(Mode.COMPLETE, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         route = self.route
+        # Progress watchdog: a target keyframe not reached in time (legs blocked one after
+        # another, a waypoint never reached) counts a failed try for its frontiers.
+        if self._progress_target != route.target_keyframe:
+            self._progress_target, self._progress_s = route.target_keyframe, stamp_s
+        elif stamp_s - self._progress_s > self.params.route_timeout_s:
+            self._fail_keyframe(local_map, route.target_keyframe)
+            self.blocked_legs.clear()
+            self.route = None
+            self._progress_target = None
+            return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # The route ends here: take the target keyframe's own frontiers from its origin, where
         # its polygon is star-shaped; those still out of reach count a failed try.
         if route.keyframes == [frame_id] and math.hypot(vehicle.x_m, vehicle.y_m) <= self.params.waypoint_reached_m:
@@ -394,6 +407,7 @@ class FrontierPlanner:
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         del route.keyframes[:skip]
         if float(np.hypot(*(wp - here))) <= self.params.waypoint_reached_m:
+            self._progress_s = stamp_s
             if len(route.keyframes) > 1:
                 route.keyframes.pop(0)
             return Decision(Mode.BACKTRACKING, Target(pose.x_m, pose.y_m, pose.yaw_rad), relocalize_to=nxt)

@@ -54,6 +54,11 @@ class FlightControl(Protocol):
         """Replace the target that the stream sends (non-finite targets are refused)."""
         ...
 
+    def in_control(self) -> bool:
+        """True while the vehicle is armed and in the mode that follows the companion's targets
+        (a crash, a pilot taking over or an autopilot failsafe makes it False)."""
+        ...
+
     async def hold(self) -> None:
         """Stop flying to targets: the autopilot's own position-hold mode."""
         ...

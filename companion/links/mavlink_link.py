@@ -422,6 +422,11 @@ class MavlinkLink:
         await self._wait_for(lambda: self.height_m >= altitude_m - 0.2, self.settings.climb_timeout_s, "climb")
         self._start_stream()
 
+    def in_control(self) -> bool:
+        if self.autopilot == "px4":
+            return self.armed and self.custom_mode == PX4_MAIN_OFFBOARD << 16
+        return self.armed and self.custom_mode == ARDUPILOT_GUIDED
+
     async def _arm(self) -> None:
         await self.command("arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
 

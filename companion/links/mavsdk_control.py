@@ -34,6 +34,9 @@ class MavsdkControl:
         self._telemetry: Any = None
         self._target: Any = None
         self._pending: asyncio.Task[None] | None = None
+        self._watcher: asyncio.Task[None] | None = None
+        self._armed: bool | None = None  # None until MAVSDK reports it
+        self._offboard_mode: bool | None = None
 
     async def connect(self) -> None:
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
@@ -50,6 +53,7 @@ class MavsdkControl:
         self._offboard = OffboardAsync(self._system)
         self._action = ActionAsync(self._system)
         self._telemetry = TelemetryAsync(self._system)
+        self._watcher = asyncio.create_task(self._watch())
         log.info("MAVSDK connected on %s", self.url)
 
     def _position(self, setpoint: Setpoint) -> Any:
@@ -84,6 +88,26 @@ class MavsdkControl:
             if time.monotonic() > end:
                 raise LinkError("climb did not finish in time")
 
+    def in_control(self) -> bool:
+        return self._armed is not False and self._offboard_mode is not False
+
+    async def _watch(self) -> None:
+        """Armed state and flight mode, as MAVSDK reports them (its offboard.is_active() can stay
+        True when the vehicle left the mode, so trust the telemetry instead)."""
+
+        async def armed() -> None:
+            async for value in self._telemetry.subscribe_armed():
+                self._armed = bool(value)
+
+        async def mode() -> None:
+            async for value in self._telemetry.subscribe_flight_mode():
+                offboard = _flight_mode_name(value) == "OFFBOARD"
+                if offboard != self._offboard_mode:
+                    log.info("MAVSDK flight mode: %s", value)
+                self._offboard_mode = offboard
+
+        await asyncio.gather(armed(), mode())
+
     def set_target(self, setpoint: Setpoint) -> None:
         if not setpoint.is_finite():
             raise LinkError(f"refusing a non-finite setpoint {setpoint}")
@@ -102,8 +126,19 @@ class MavsdkControl:
                 break
 
     async def close(self) -> None:
-        if self._pending is not None and not self._pending.done():
-            self._pending.cancel()
+        for task in (self._pending, self._watcher):
+            if task is not None and not task.done():
+                task.cancel()
         if self._mavsdk is not None:
             self._mavsdk.destroy()
             self._mavsdk = None
+
+
+def _flight_mode_name(value: Any) -> str:
+    """MAVSDK 4 yields the FlightMode enum or its integer value."""
+    from mavsdk.plugins.telemetry import FlightMode
+
+    try:
+        return FlightMode(int(value)).name
+    except (TypeError, ValueError):
+        return str(value).rsplit(".", 1)[-1].upper()
