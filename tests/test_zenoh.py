@@ -145,7 +145,7 @@ def test_companion_explores_room_with_zenoh_sensors_monitored_and_garbage_droppe
     sensor_hz = 10.0 * speedup  # 10 Hz of vehicle time
     # Never faster than the sensor; slower only when this busy machine cannot keep the speed-up.
     assert 0.5 * sensor_hz < rates[keys.scan] < 1.2 * sensor_hz
-    assert rates[keys.setpoint] > 0.5 * sensor_hz
+    assert rates[keys.setpoint] > 0.3 * sensor_hz
     assert 0.5 <= rates[keys.state] <= 5.0 and 0.5 <= rates[keys.health] <= 5.0
     assert any(k.startswith(f"{keys.root}/companion/map/keyframes/") for k in stats)
     assert reply and reply[0].ok is not None
