@@ -49,7 +49,7 @@ async def run_service(config: Config, report_path: Path | None) -> int:
             from companion.links.mavsdk_control import MavsdkControl
 
             assert v.mavsdk_url is not None
-            mavsdk = MavsdkControl(v.mavsdk_url, v.setpoint_rate_hz, v.altitude_m)
+            mavsdk = MavsdkControl(v.mavsdk_url, v.altitude_m)
             closers.append(mavsdk)
             await mavsdk.connect()
             control = mavsdk
@@ -63,9 +63,8 @@ async def run_service(config: Config, report_path: Path | None) -> int:
             from companion.links.zenoh_link import ZenohInputs, ZenohOutputs, ZenohSettings, open_session
 
             z = config.zenoh
-            session = open_session(
-                ZenohSettings(z.mode, tuple(z.connect), tuple(z.listen), z.multicast_scouting, dict(z.overrides))
-            )
+            settings = ZenohSettings(z.mode, tuple(z.connect), tuple(z.listen), z.multicast_scouting, dict(z.overrides))
+            session = await asyncio.to_thread(open_session, settings)  # zenoh.open blocks
             closers.insert(0, _SessionCloser(session))
             keys = Keys(z.prefix, z.vehicle)
             i = config.inputs
@@ -141,7 +140,7 @@ class _SessionCloser:
         self._session = session
 
     async def close(self) -> None:
-        self._session.close()
+        await asyncio.to_thread(self._session.close)
 
 
 def _publisher(outputs: Any, drops: Any) -> Any:

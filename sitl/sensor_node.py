@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from typing import Any
 
 import numpy as np
@@ -101,4 +100,3 @@ class SensorNode:
         for pub in self._pubs.values():
             pub.undeclare()
         self.conn.close()
-        time.sleep(0.05)

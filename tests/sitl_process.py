@@ -52,6 +52,17 @@ def running(args: list[str], name: str) -> Iterator[subprocess.Popen[str]]:
         reader.join(2)
 
 
+def run_companion(config: Path, report: Path, timeout_s: float) -> subprocess.CompletedProcess[str]:
+    """``companion run`` to the end, its output captured for assertion messages."""
+    return subprocess.run(
+        [sys.executable, "-m", "companion.cli", "run", "--config", str(config), "--report", str(report)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+
+
 @contextmanager
 def sitl_vehicle(
     autopilot: str,

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
+from companion.core.errors import ScanError
 from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan, Odometry, Setpoint
 from companion.errors import ConfigError
@@ -67,7 +68,7 @@ def test_wide_scans_keep_the_nearest_return_per_bin() -> None:
 def test_north_aligned_obstacle_distance_needs_and_uses_the_heading() -> None:
     distances = (300,) * 8 + (UINT16_MAX,) * 64
     msg = ObstacleDistance(0, distances, 5.0, 80.0, 10, 500, MAV_FRAME_LOCAL_NED)
-    with pytest.raises(Exception, match="heading"):
+    with pytest.raises(ScanError, match="heading"):
         decode_scan(msg, 0.0)
     # Heading east (NED yaw 90 deg): a return at 90..125 deg from north is 0..35 deg to the right.
     scan = decode_scan(msg, 0.0, math.radians(90.0))
@@ -84,7 +85,7 @@ def test_bad_obstacle_distance_is_refused() -> None:
         ObstacleDistance(0, (UINT16_MAX,) * 72, 1.0, 0.0, 10, 500),
         ObstacleDistance(0, ok, 1.0, 0.0, 10, 500, frame=7),
     ):
-        with pytest.raises(Exception):  # noqa: B017 - ScanError, any message
+        with pytest.raises(ScanError):
             decode_scan(bad, 0.0, 0.0)
 
 

@@ -7,8 +7,6 @@ import asyncio
 import json
 import math
 import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,7 +16,7 @@ from companion.core.messages import Setpoint
 from companion.links.base import CommandRefused
 from companion.links.mavlink_link import PX4_MAIN_OFFBOARD, MavlinkLink, MavlinkSettings
 from sitl.autopilot import px4_custom_mode
-from tests.sitl_process import ROOT, free_port, sitl_vehicle
+from tests.sitl_process import free_port, run_companion, sitl_vehicle
 
 SPEEDUP = 10.0
 # Whole explorations run slower: a millisecond of link latency is SPEEDUP times longer in vehicle
@@ -96,13 +94,7 @@ def test_companion_run_explores_room_over_mavlink(tmp_path: Path, autopilot: str
             f"zenoh:\n  connect: [tcp/127.0.0.1:{zenoh_port}]\n"
             "exploration:\n  max_time_s: 600\n"
         )
-        run = subprocess.run(
-            [sys.executable, "-m", "companion.cli", "run", "--config", str(config), "--report", str(report)],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=240,
-        )
+        run = run_companion(config, report, 240)
         assert report.exists(), run.stderr[-3000:]
         time.sleep(0.5)
     truth = json.loads(sitl_report.read_text())
@@ -172,13 +164,7 @@ def test_companion_flies_through_the_mavsdk_backend(tmp_path: Path) -> None:
             f"vehicle:\n  mavlink: {url}\n  control: mavsdk\n  mavsdk_url: udpin://127.0.0.1:{mavsdk_port}\n"
             "exploration:\n  max_time_s: 25\n"
         )
-        run = subprocess.run(
-            [sys.executable, "-m", "companion.cli", "run", "--config", str(config), "--report", str(report)],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        run = run_companion(config, report, 120)
         time.sleep(0.5)
     truth = json.loads(sitl_report.read_text())
     result = json.loads(report.read_text())

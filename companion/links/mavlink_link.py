@@ -68,7 +68,6 @@ class MavlinkLink:
         self.armed = False
         self.custom_mode = 0
         self.height_m = 0.0
-        self.landed_state = 0
         self._heartbeat = asyncio.Event()
         self._acks: dict[int, asyncio.Future[int]] = {}
         self._reasons: deque[tuple[float, str]] = deque(maxlen=20)
@@ -78,6 +77,7 @@ class MavlinkLink:
         self._attitudes: deque[tuple[float, float]] = deque(maxlen=16)  # (stamp s, yaw NED)
         self._pending_position: tuple[float, float, float] | None = None
         self._odometry_seen_s = -math.inf
+        self._odom_stamp_s: float | None = None  # vehicle time of the newest odometry
         self._last_input_s: dict[str, float] = {}
         self._target: tuple[float, float, float] | None = None  # north, east, yaw (NED)
         self._tasks: list[asyncio.Task[None]] = []
@@ -203,8 +203,6 @@ class MavlinkLink:
             self._reasons.append((now, text))
             level = logging.WARNING if msg.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
             log.log(level, "autopilot: %s", text)
-        elif kind == "EXTENDED_SYS_STATE":
-            self.landed_state = int(msg.landed_state)
 
     def _heartbeat_from(self, msg: Any) -> None:
         if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
@@ -276,7 +274,7 @@ class MavlinkLink:
             int(msg.frame),
         )
         stamp = od.time_usec / 1e6
-        odom_stamp = getattr(self, "_odom_stamp_s", None)
+        odom_stamp = self._odom_stamp_s
         if odom_stamp is not None and abs(stamp - odom_stamp) > 5.0:
             # Another clock (UNIX time against time since boot): pair with the newest odometry.
             stamp = odom_stamp
@@ -333,7 +331,6 @@ class MavlinkLink:
         wanted = [
             ("LOCAL_POSITION_NED", mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, hz),
             ("ATTITUDE", mavlink.MAVLINK_MSG_ID_ATTITUDE, hz),
-            ("EXTENDED_SYS_STATE", mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0),
             ("OBSTACLE_DISTANCE", mavlink.MAVLINK_MSG_ID_OBSTACLE_DISTANCE, hz),
         ]
         if self.autopilot == "px4":

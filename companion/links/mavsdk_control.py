@@ -23,7 +23,7 @@ log = logging.getLogger("companion.mavsdk")
 class MavsdkControl:
     """Offboard position control of one vehicle through MAVSDK."""
 
-    def __init__(self, url: str, setpoint_rate_hz: float, altitude_m: float, timeout_s: float = 30.0) -> None:
+    def __init__(self, url: str, altitude_m: float, timeout_s: float = 30.0) -> None:
         self.url = url
         self.altitude_m = altitude_m
         self.timeout_s = timeout_s

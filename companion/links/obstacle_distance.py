@@ -17,6 +17,7 @@ import numpy as np
 
 from companion.core.errors import ScanError
 from companion.core.messages import DepthScan
+from companion.links.frames import frd_bearings_to_core
 
 UINT16_MAX = 65535
 BINS = 72
@@ -95,8 +96,7 @@ def decode_scan(msg: ObstacleDistance, stamp_s: float, vehicle_yaw_ned_rad: floa
         offset_deg -= math.degrees(vehicle_yaw_ned_rad)
     elif msg.frame != MAV_FRAME_BODY_FRD:
         raise ScanError(f"OBSTACLE_DISTANCE frame {msg.frame} is not supported (use MAV_FRAME_BODY_FRD)")
-    frd_deg = offset_deg + used * msg.increment_deg
-    bearings = -np.radians(frd_deg)
+    bearings = frd_bearings_to_core(np.radians(offset_deg + used * msg.increment_deg))
     cm = d[used]
     max_m = msg.max_distance_cm / 100.0
     ranges = np.where(cm > msg.max_distance_cm, np.inf, cm / 100.0)

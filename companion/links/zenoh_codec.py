@@ -35,11 +35,16 @@ def dumps(kind: str, body: dict[str, Any]) -> bytes:
     return json.dumps({"schema": SCHEMA_VERSION, "type": kind, **body}, allow_nan=False, separators=(",", ":")).encode()
 
 
+def _reject_constant(name: str) -> float:
+    """JSON has no NaN or Infinity; Python's parser accepts them unless told not to."""
+    raise ValueError(f"{name} is not JSON")
+
+
 def _load(payload: bytes, kind: str) -> dict[str, Any]:
     if len(payload) > MAX_PAYLOAD_BYTES:
         raise PayloadError("oversized", f"{len(payload)} bytes > {MAX_PAYLOAD_BYTES}")
     try:
-        data = json.loads(payload, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+        data = json.loads(payload, parse_constant=_reject_constant)
     except (ValueError, UnicodeDecodeError) as err:
         raise PayloadError("malformed", str(err)[:80]) from None
     if not isinstance(data, dict):
