@@ -31,6 +31,7 @@ class ExplorerParams:
     keyframe_angle_rad: float = 0.5
     backtrack_keyframe_distance_m: float = 3.0  # fewer new views while flying through known space
     loop_closure_max_gap_s: float = 5.0  # a loop closure needs a keyframe this close in time
+    velocity_window_s: float = 0.2  # odometry differenced over this long for the vehicle's velocity
 
 
 @dataclass(frozen=True, slots=True)
@@ -127,7 +128,8 @@ class Explorer:
         if self._live is not None:
             pose_at_scan, returns = self._live
             live = self.anchor.between(pose_at_scan).apply(returns)
-        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s, live)
+        velocity = self._velocity_in_frame(odom)
+        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s, live, velocity)
         if decision.relocalize_to is not None and decision.relocalize_to != self.current_id:
             rel = self.map.pose_in(self.current_id, decision.relocalize_to)
             self.anchor = self.anchor.compose(rel)
@@ -192,6 +194,16 @@ class Explorer:
         correction = odom.pose.compose(last.pose.inverse())
         self.anchor = correction.compose(self.anchor)
         self.history.shift(correction)
+
+    def _velocity_in_frame(self, odom: Odometry) -> tuple[float, float]:
+        """The vehicle's velocity over the last ``velocity_window_s``, in the current keyframe's frame."""
+        before = self.history.at(odom.stamp_s - self.params.velocity_window_s)
+        if before is None:
+            return (0.0, 0.0)
+        dt = self.params.velocity_window_s
+        vx, vy = (odom.pose.x_m - before.x_m) / dt, (odom.pose.y_m - before.y_m) / dt
+        c, s = math.cos(self.anchor.yaw_rad), math.sin(self.anchor.yaw_rad)
+        return (c * vx + s * vy, -s * vx + c * vy)
 
     def _keyframe_near(self, stamp_s: float, gap_s: float) -> int | None:
         best, best_gap = None, gap_s

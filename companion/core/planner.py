@@ -25,6 +25,7 @@ import numpy as np
 import shapely
 
 from companion.core.errors import GraphError
+from companion.core.free_space_grid import FreeSpaceGrid, GridParams, Reach
 from companion.core.frontiers import FrontierKey, targetable_indices
 from companion.core.geometry import FloatArray, Pose2, wrap_angle, wrap_angles
 from companion.core.local_map import LocalMap, LocalView
@@ -59,6 +60,10 @@ class PlannerParams:
     route_timeout_s: float = 30.0  # backtracking without reaching a waypoint for this long fails the target
     side_shift_m: float = 0.5  # sideways goal shift tried from a keyframe's origin
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
+    grid: GridParams = field(default_factory=GridParams)  # paths where a straight line is blocked
+    corner_reached_m: float = 0.25  # a path's corner counts as passed this close (slow, no overshoot)
+    corner_speed_mps: float = 0.5  # and a waypoint as reached only this slow: a sharp turn after it
+    # must not carry the vehicle's momentum sideways into a wall
 
     @property
     def clearance_m(self) -> float:
@@ -93,6 +98,7 @@ class _Goal:
     selected_s: float
     deadline_s: float
     arrived_s: float | None = None
+    path: FloatArray | None = None  # waypoints to the goal point, in the frontier keyframe's frame
 
 
 @dataclass(slots=True)
@@ -107,6 +113,21 @@ class _Candidate:
     goal_xy: FloatArray  # in the current frame
     look_rad: float
     score: float
+    path: FloatArray | None = None  # waypoints through free space when no straight path is clear
+
+    @property
+    def aim_xy(self) -> FloatArray:
+        """Where to fly first: the path's first waypoint, or the goal point itself."""
+        return self.goal_xy if self.path is None else self.path[0]
+
+
+@dataclass(slots=True)
+class _Leg:
+    """Waypoints to the next route keyframe, kept in the frame they were planned in."""
+
+    frame_id: int
+    keyframe_id: int
+    points: FloatArray
 
 
 @dataclass(slots=True)
@@ -122,6 +143,10 @@ class FrontierPlanner:
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     _progress_target: int | None = None
     _progress_s: float = 0.0
+    _leg: _Leg | None = None
+    _speed_mps: float = 0.0
+    _grid: tuple[LocalView, FreeSpaceGrid] | None = None
+    _grid_tried: tuple[LocalView, int, int] | None = None  # (view, cell): the grid found nothing there
 
     def plan(
         self,
@@ -130,16 +155,19 @@ class FrontierPlanner:
         vehicle: Pose2,
         stamp_s: float,
         live_obstacles_xy: FloatArray | None = None,
+        velocity_xy: tuple[float, float] | None = None,
     ) -> Decision:
         """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame).
 
         ``live_obstacles_xy`` are the newest scan's returns in the same frame: every path is also
         checked against them (thesis 2.9.2: the current view must not head into an obstacle), so a
-        drifted neighbour view can never clear a path the sensor sees blocked now.
+        drifted neighbour view can never clear a path the sensor sees blocked now. ``velocity_xy``
+        (m/s, same frame) gates waypoint arrival: one counts as reached only once slow enough.
         """
         view = local_map.view(frame_id)
         here = np.array([vehicle.x_m, vehicle.y_m])
         self._live = np.zeros((0, 2)) if live_obstacles_xy is None else live_obstacles_xy
+        self._speed_mps = 0.0 if velocity_xy is None else math.hypot(*velocity_xy)
         required = self._required_clearance(view, here)
 
         if self.goal is not None:
@@ -151,7 +179,7 @@ class FrontierPlanner:
         if best is not None:
             self.route = None
             self._commit(local_map, frame_id, best, here, stamp_s)
-            return self._fly(vehicle, best.goal_xy, best.look_rad, Mode.EXPLORING, best.key)
+            return self._fly(vehicle, best.aim_xy, best.look_rad, Mode.EXPLORING, best.key)
 
         return self._backtrack(local_map, frame_id, view, vehicle, here, required, stamp_s)
 
@@ -194,18 +222,41 @@ class FrontierPlanner:
             self._failed(goal.key)
             self.goal = None
             return None
+        if goal.path is not None and goal.arrived_s is None:
+            pts = pose.apply(goal.path)
+            while pts.shape[0] > 1 and self._reached(pts[0], here, self.params.corner_reached_m):
+                pts = pts[1:]
+            goal.path = goal.path[-pts.shape[0] :]
+            if pts.shape[0] > 1:
+                if self._leg_blocked(vehicle, here, pts[0], required):
+                    self.goal = None
+                    return None
+                return self._fly(vehicle, pts[0], look, Mode.EXPLORING, goal.key)
+            goal.path = None
         blocked = dist > self.params.goal_reached_m and not self._accessible(view, here, goal_xy, required)
         if goal.arrived_s is None and blocked:
             self.goal = None
             return None
         return self._fly(vehicle, goal_xy, look, Mode.EXPLORING, goal.key)
 
+    def _leg_blocked(self, vehicle: Pose2, here: FloatArray, wp: FloatArray, required: float) -> bool:
+        """The newest scan sees the leg to ``wp`` blocked (judged once facing it: the sensor looks
+        ahead). A leg through free space needs the body radius clear, not the whole margin."""
+        travel = float(np.arctan2(*(wp - here)[::-1]))
+        facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
+        leg_required = min(required, self.params.body_radius_m + self.params.leg_margin_m)
+        return bool(facing and self._live.shape[0] and _segment_clearance(here, wp, self._live) < leg_required)
+
     def _commit(self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float) -> None:
         pose = local_map.pose_in(frame_id, c.key.keyframe_id).inverse()
         lx, ly = pose.apply_point(float(c.goal_xy[0]), float(c.goal_xy[1]))
         dist = float(np.hypot(*(c.goal_xy - here)))
+        if c.path is not None:
+            dist = float(np.sum(np.hypot(*np.diff(np.vstack((here, c.path)), axis=0).T)))
         budget = max(self.params.goal_timeout_min_s, 3.0 * dist / self.params.cruise_speed_mps)
-        self.goal = _Goal(c.key, (lx, ly), wrap_angle(c.look_rad + pose.yaw_rad), stamp_s, stamp_s + budget)
+        path = None if c.path is None else pose.apply(c.path)
+        look = wrap_angle(c.look_rad + pose.yaw_rad)
+        self.goal = _Goal(c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path)
 
     def _close_or_set_aside_around(self, local_map: LocalMap, frame_id: int, key: FrontierKey) -> None:
         """The frontier and its close neighbours: closed where the view from here saw beyond them
@@ -301,7 +352,29 @@ class FrontierPlanner:
         for c in candidates[:limit]:
             if self._accessible(view, here, c.goal_xy, required):
                 return c
+        # No straight path: look for paths through the known free space (a frontier seen through a
+        # door at an angle). Once per view and place, unless asked at a keyframe's origin.
+        tried = (view, math.floor(here[0]), math.floor(here[1]))
+        last = self._grid_tried
+        if not candidates or (not dense and last is not None and last[0] is view and last[1:] == tried[1:]):
+            return None
+        reach = self._reach(view, here)
+        if reach is not None:
+            for c in candidates[:limit]:
+                path = reach.path_to(c.goal_xy)
+                if path is not None:
+                    c.path = path
+                    return c
+        self._grid_tried = tried
         return None
+
+    def _reach(self, view: LocalView, here: FloatArray) -> Reach | None:
+        """The wavefront through the view's free space (with the newest returns) from ``here``."""
+        if self._grid is None or self._grid[0] is not view:
+            segs = shapely.get_coordinates(view.obstacles).reshape(-1, 2, 2)
+            self._grid = (view, FreeSpaceGrid.build(view.grown, segs, self.params.clearance_m, self.params.grid))
+        grid = self._grid[1].with_blocked_points(self._live)
+        return grid.reach_from(here)
 
     # -- accessibility (2.9.2) ------------------------------------------------------------------
 
@@ -365,12 +438,12 @@ class FrontierPlanner:
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # The route ends here: take the target keyframe's own frontiers from its origin, where
         # its polygon is star-shaped; those still out of reach count a failed try.
-        if route.keyframes == [frame_id] and math.hypot(vehicle.x_m, vehicle.y_m) <= self.params.waypoint_reached_m:
+        if route.keyframes == [frame_id] and self._reached(np.zeros(2), here, self.params.waypoint_reached_m):
             best = self._select_local(local_map, frame_id, view, vehicle, here, required, only_keyframe=frame_id)
             if best is not None:
                 self.route = None
                 self._commit(local_map, frame_id, best, here, stamp_s)
-                return self._fly(vehicle, best.goal_xy, best.look_rad, Mode.EXPLORING, best.key)
+                return self._fly(vehicle, best.aim_xy, best.look_rad, Mode.EXPLORING, best.key)
             self._fail_keyframe(local_map, frame_id)
             self.route = None
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
@@ -389,29 +462,70 @@ class FrontierPlanner:
         nxt = route.keyframes[skip]
         pose = local_map.pose_in(frame_id, nxt)
         wp = np.array([pose.x_m, pose.y_m])
-        travel = float(np.arctan2(*(wp - here)[::-1]))
-        facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
-        # Only judge a leg by the newest scan once facing it: the sensor looks ahead, and the
-        # vehicle turns in place towards a leg before it flies it.
-        # A leg between keyframes was flown once: it needs the body radius clear, not the margin.
-        leg_required = min(required, self.params.body_radius_m + self.params.leg_margin_m)
-        if facing and self._live.shape[0] and _segment_clearance(here, wp, self._live) < leg_required:
+        if skip:
+            points, fresh = wp[None, :], True
+        else:
+            points, fresh = self._leg_points(local_map, frame_id, view, here, nxt, wp, required)
+        if self._leg_blocked(vehicle, here, points[0], required):
+            if not fresh:  # planned before the newest scan: plan again with it
+                self._leg = None
+                return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
             # The sensor sees this leg blocked now (a drifted or loop-closure leg cutting a
-            # corner): never take it again; re-route around it, and only when no route is left
-            # do the target's frontiers count a failed try.
+            # corner, no way round in view): never take it again; re-route around it, and only
+            # when no route is left do the target's frontiers count a failed try.
             self.blocked_legs.add((frame_id, nxt))
+            self._leg = None
             if skip == 0:
                 self.route = self._find_route(local_map, frame_id, route.target_keyframe)
                 if self.route is None:
                     self._fail_keyframe(local_map, route.target_keyframe)
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         del route.keyframes[:skip]
-        if float(np.hypot(*(wp - here))) <= self.params.waypoint_reached_m:
+        if self._reached(wp, here, self.params.waypoint_reached_m):
             self._progress_s = stamp_s
+            self._leg = None
             if len(route.keyframes) > 1:
                 route.keyframes.pop(0)
             return Decision(Mode.BACKTRACKING, Target(pose.x_m, pose.y_m, pose.yaw_rad), relocalize_to=nxt)
-        return self._fly(vehicle, wp, travel, Mode.BACKTRACKING, None)
+        aim = points[0]
+        travel = float(np.arctan2(*(aim - here)[::-1]))
+        return self._fly(vehicle, aim, travel, Mode.BACKTRACKING, None)
+
+    def _leg_points(
+        self,
+        local_map: LocalMap,
+        frame_id: int,
+        view: LocalView,
+        here: FloatArray,
+        keyframe_id: int,
+        wp: FloatArray,
+        required: float,
+    ) -> tuple[FloatArray, bool]:
+        """Waypoints to the next route keyframe (at ``wp``), the keyframe last, and whether they
+        were planned just now: straight when that is clear, else a path through the view's free
+        space (a leg flown once may pass a door jamb the vehicle now sees from elsewhere)."""
+        leg = self._leg
+        if leg is not None and leg.keyframe_id == keyframe_id:
+            pts = local_map.pose_in(frame_id, leg.frame_id).apply(leg.points)
+            while pts.shape[0] > 1 and self._reached(pts[0], here, self.params.corner_reached_m):
+                pts = pts[1:]
+            pts[-1] = wp
+            self._leg = _Leg(frame_id, keyframe_id, pts)
+            return pts, False
+        leg_required = min(required, self.params.body_radius_m + self.params.leg_margin_m)
+        pts = wp[None, :]
+        if not self._accessible(view, here, wp, leg_required):
+            reach = self._reach(view, here)
+            path = None if reach is None else reach.path_to(wp)
+            if path is not None:
+                pts = path
+                pts[-1] = wp
+        self._leg = _Leg(frame_id, keyframe_id, pts)
+        return pts, True
+
+    def _reached(self, point: FloatArray, here: FloatArray, radius_m: float) -> bool:
+        """Within ``radius_m`` of a waypoint and slow enough to turn there."""
+        return float(np.hypot(*(point - here))) <= radius_m and self._speed_mps <= self.params.corner_speed_mps
 
     def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int) -> None:
         for i in targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m):

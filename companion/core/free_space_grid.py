@@ -1,0 +1,254 @@
+"""Paths through a view's known free space, for goals a straight line does not reach.
+
+Rapid frontier selection (thesis 2.9) flies straight lines. A frontier seen through a door at an
+angle, or a keyframe behind a door jamb, has no clear straight path from where the vehicle is, yet
+the known free space joins them. This module rasterises a view's known free space (its grown
+polygon, eroded by the clearance, with every obstacle edge the view holds and the live scan's
+returns blocked too), runs a breadth-first wavefront from the vehicle, and returns a few waypoints
+along the shortest grid path, shortened by line of sight.
+
+numpy only for the search (a vectorised wavefront, no per-cell Python loop); shapely to rasterise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+
+from companion.core.geometry import FloatArray
+
+_UNREACHED = -1
+
+
+@dataclass(frozen=True, slots=True)
+class GridParams:
+    """Resolution of the free-space grid and how far from walls and unknown space its cells keep."""
+
+    cell_m: float = 0.15
+    snap_m: float = 0.5  # a start or goal in a blocked cell is moved to the nearest free cell this close
+    centring_cells: int = 3  # a path's corners move up to this many cells away from walls
+
+
+def _disk_offsets(radius_cells: float) -> list[tuple[int, int]]:
+    r = math.floor(radius_cells)
+    return [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy * dy + dx * dx <= radius_cells**2]
+
+
+def _dilate(mask: NDArray[np.bool_], offsets: list[tuple[int, int]]) -> NDArray[np.bool_]:
+    """Every cell within the offsets of a set cell (binary dilation by shifting)."""
+    out = mask.copy()
+    ny, nx = mask.shape
+    for dy, dx in offsets:
+        if dy == 0 and dx == 0:
+            continue
+        ys, yd = (slice(0, ny - dy), slice(dy, ny)) if dy >= 0 else (slice(-dy, ny), slice(0, ny + dy))
+        xs, xd = (slice(0, nx - dx), slice(dx, nx)) if dx >= 0 else (slice(-dx, nx), slice(0, nx + dx))
+        out[yd, xd] |= mask[ys, xs]
+    return out
+
+
+_NEIGHBOURS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+_CROSS = [(-1, 0), (0, -1), (0, 1), (1, 0)]
+
+
+@dataclass(frozen=True, slots=True)
+class FreeSpaceGrid:
+    """Cells whose centre keeps the clearance from walls and unknown space; row = y, column = x."""
+
+    origin_xy: tuple[float, float]  # centre of cell (0, 0)
+    cell_m: float
+    clearance_m: float
+    blocked: NDArray[np.bool_]  # not known free, or an obstacle sample (before erosion)
+    free: NDArray[np.bool_]  # far enough from every blocked cell
+    params: GridParams
+    depth: NDArray[np.int8]  # how many cells deeper than the clearance a free cell lies (0 at the edge)
+
+    @staticmethod
+    def build(
+        free_space: shapely.Geometry,
+        obstacle_segments: FloatArray,
+        clearance_m: float,
+        params: GridParams | None = None,
+    ) -> FreeSpaceGrid:
+        """Rasterise ``free_space`` (a polygon, in some frame) with the obstacle segments (M, 2, 2)
+        blocked, then erode by ``clearance_m`` (less half a cell, so a door exactly twice the
+        clearance plus a cell wide stays open)."""
+        p = params or GridParams()
+        cell = p.cell_m
+        minx, miny, maxx, maxy = free_space.bounds if not free_space.is_empty else (0.0, 0.0, 0.0, 0.0)
+        pad = clearance_m + 2 * cell
+        x0, y0 = minx - pad, miny - pad
+        nx = max(1, math.ceil((maxx + pad - x0) / cell))
+        ny = max(1, math.ceil((maxy + pad - y0) / cell))
+        xs = x0 + cell * np.arange(nx)
+        ys = y0 + cell * np.arange(ny)
+        gx, gy = np.meshgrid(xs, ys)
+        inside = shapely.contains_xy(free_space, gx.ravel(), gy.ravel()).reshape(ny, nx)
+        blocked = ~inside
+        grid = FreeSpaceGrid((x0, y0), cell, clearance_m, blocked, blocked, p, blocked.astype(np.int8))
+        return grid.with_blocked_points(_sample_segments(obstacle_segments, cell / 2.0), erode=True)
+
+    def with_blocked_points(self, points_xy: FloatArray, erode: bool = False) -> FreeSpaceGrid:
+        """A copy with cells at the points blocked too (e.g. the newest scan's returns)."""
+        blocked = self.blocked.copy()
+        if points_xy.shape[0]:
+            ij = self._cells(points_xy)
+            ok = (ij[:, 0] >= 0) & (ij[:, 0] < blocked.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < blocked.shape[1])
+            blocked[ij[ok, 0], ij[ok, 1]] = True
+        radius_cells = max(0.0, (self.clearance_m - self.cell_m / 2.0) / self.cell_m)
+        if not (erode or points_xy.shape[0]):
+            return self
+        not_free = _dilate(blocked, _disk_offsets(radius_cells))
+        depth = np.zeros(blocked.shape, dtype=np.int8)
+        deeper = not_free
+        for _ in range(self.params.centring_cells):
+            deeper = _dilate(deeper, _CROSS)
+            depth += ~deeper
+        return FreeSpaceGrid(self.origin_xy, self.cell_m, self.clearance_m, blocked, ~not_free, self.params, depth)
+
+    def is_free(self, points_xy: FloatArray) -> NDArray[np.bool_]:
+        ij = self._cells(points_xy)
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < self.free.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < self.free.shape[1])
+        out = np.zeros(points_xy.shape[0], dtype=bool)
+        out[ok] = self.free[ij[ok, 0], ij[ok, 1]]
+        return out
+
+    def line_free(self, a_xy: FloatArray, b_xy: FloatArray) -> bool:
+        """Every cell along the segment a-b is free."""
+        n = max(2, math.ceil(float(np.hypot(*(b_xy - a_xy))) / (self.cell_m / 2.0)) + 1)
+        t = np.linspace(0.0, 1.0, n)[:, None]
+        return bool(self.is_free(a_xy + t * (b_xy - a_xy)).all())
+
+    def reach_from(self, start_xy: FloatArray) -> Reach | None:
+        """The wavefront from the free cell at (or nearest to) ``start_xy``; None when there is none."""
+        start = self._snap(start_xy)
+        if start is None:
+            return None
+        dist = np.full(self.free.shape, _UNREACHED, dtype=np.int32)
+        dist[start] = 0
+        front = np.zeros(self.free.shape, dtype=bool)
+        front[start] = True
+        visited = front.copy()
+        step = 0
+        while front.any():
+            step += 1
+            nxt = _dilate(front, _NEIGHBOURS) & self.free & ~visited
+            dist[nxt] = step
+            visited |= nxt
+            front = nxt
+        return Reach(self, np.asarray(start_xy, dtype=np.float64), dist)
+
+    def cell_centre(self, i: int, j: int) -> FloatArray:
+        return np.array([self.origin_xy[0] + j * self.cell_m, self.origin_xy[1] + i * self.cell_m])
+
+    def _cells(self, points_xy: FloatArray) -> NDArray[np.intp]:
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        j = np.rint((pts[:, 0] - self.origin_xy[0]) / self.cell_m).astype(np.intp)
+        i = np.rint((pts[:, 1] - self.origin_xy[1]) / self.cell_m).astype(np.intp)
+        return np.column_stack((i, j))
+
+    def _snap(self, xy: FloatArray, mask: NDArray[np.bool_] | None = None) -> tuple[int, int] | None:
+        """The free (and, if given, masked) cell nearest ``xy`` within ``snap_m``."""
+        allowed = self.free if mask is None else self.free & mask
+        i, j = (int(v) for v in self._cells(np.asarray(xy))[0])
+        r = math.ceil(self.params.snap_m / self.cell_m)
+        ny, nx = allowed.shape
+        i0, i1, j0, j1 = max(0, i - r), min(ny, i + r + 1), max(0, j - r), min(nx, j + r + 1)
+        if i0 >= i1 or j0 >= j1:
+            return None
+        window = allowed[i0:i1, j0:j1]
+        if not window.any():
+            return None
+        wi, wj = np.nonzero(window)
+        d2 = (wi + i0 - i) ** 2 + (wj + j0 - j) ** 2
+        k = int(np.argmin(d2))
+        if d2[k] * self.cell_m**2 > self.params.snap_m**2:
+            return None
+        return int(wi[k] + i0), int(wj[k] + j0)
+
+
+@dataclass(frozen=True, slots=True)
+class Reach:
+    """Grid steps from a start cell to every free cell connected to it."""
+
+    grid: FreeSpaceGrid
+    start_xy: FloatArray
+    steps: NDArray[np.int32]
+
+    def path_to(self, goal_xy: FloatArray) -> FloatArray | None:
+        """Waypoints (K, 2) from the start to ``goal_xy``, the goal last, shortened by line of
+        sight over free cells; None when the goal is not connected to the start."""
+        g = self.grid
+        goal_cell = g._snap(goal_xy, self.steps != _UNREACHED)
+        if goal_cell is None:
+            return None
+        cells = [goal_cell]
+        i, j = goal_cell
+        ny, nx = self.steps.shape
+        while self.steps[i, j] > 0:
+            here = self.steps[i, j]
+            best: tuple[int, int] | None = None
+            for di, dj in _NEIGHBOURS:
+                a, b = i + di, j + dj
+                if 0 <= a < ny and 0 <= b < nx and self.steps[a, b] == here - 1:
+                    best = (a, b)
+                    break
+            assert best is not None  # a reached cell always has a downhill neighbour
+            i, j = best
+            cells.append(best)
+        cells.reverse()
+        pts = [g.cell_centre(a, b) for a, b in cells]
+        pts[-1] = np.asarray(goal_xy, dtype=np.float64)
+        return self._centre(self._shorten(pts))
+
+    def _shorten(self, pts: list[FloatArray]) -> FloatArray:
+        """Greedy line of sight: from where the path stands, jump to the farthest point it sees."""
+        out: list[FloatArray] = []
+        cur, k = self.start_xy, 0
+        while k < len(pts) - 1:
+            far = next((m for m in range(len(pts) - 1, k, -1) if self.grid.line_free(cur, pts[m])), k + 1)
+            out.append(pts[far])
+            cur, k = pts[far], far
+        if not out:
+            out.append(pts[-1])
+        return np.vstack(out)
+
+    def _centre(self, path: FloatArray) -> FloatArray:
+        """Move each corner (every waypoint but the goal) to the deepest free cell near it, where
+        the legs on both sides stay free: a shortest path hugs door jambs; a flown one should not."""
+        g = self.grid
+        r = g.params.centring_cells
+        ny, nx = g.depth.shape
+        out = path.copy()
+        for k in range(path.shape[0] - 1):
+            i, j = (int(v) for v in g._cells(out[k])[0])
+            i0, i1, j0, j1 = max(0, i - r), min(ny, i + r + 1), max(0, j - r), min(nx, j + r + 1)
+            window = np.where(g.free[i0:i1, j0:j1], g.depth[i0:i1, j0:j1], -1).astype(np.int32)
+            wi, wj = np.nonzero(window >= 0)
+            if wi.size == 0:
+                continue
+            d2 = (wi + i0 - i) ** 2 + (wj + j0 - j) ** 2
+            order = np.lexsort((d2, -window[wi, wj]))  # deepest first, then nearest
+            before = self.start_xy if k == 0 else out[k - 1]
+            for m in order[:8]:
+                cand = g.cell_centre(int(wi[m] + i0), int(wj[m] + j0))
+                if (g.line_free(before, cand) or k == 0) and g.line_free(cand, out[k + 1]):
+                    out[k] = cand
+                    break
+        return out
+
+
+def _sample_segments(segments: FloatArray, spacing_m: float) -> FloatArray:
+    """Points along each segment (M, 2, 2), no farther apart than ``spacing_m``."""
+    if segments.shape[0] == 0:
+        return np.zeros((0, 2))
+    a, b = segments[:, 0, :], segments[:, 1, :]
+    n = np.maximum(1, np.ceil(np.hypot(*(b - a).T) / spacing_m).astype(np.intp))
+    reps = n + 1
+    seg = np.repeat(np.arange(segments.shape[0]), reps)
+    t = np.concatenate([np.linspace(0.0, 1.0, k) for k in reps])
+    return a[seg] + t[:, None] * (b[seg] - a[seg])
