@@ -287,4 +287,3 @@ class Service:
                 "count": len(self.step_ms),
             },
         }
-

@@ -9,12 +9,12 @@ from companion.core.free_space_grid import FreeSpaceGrid
 CLEARANCE_M = 0.4
 
 
-def corridor_and_room(door_width_m: float) -> tuple[shapely.Geometry, np.ndarray, tuple[float, float]]:
+def corridor_and_room(door_width_m: float) -> tuple[shapely.Geometry, np.ndarray]:
     """A corridor (y 0..2) and a room above it (y 2.1..6) joined by a door centred at x = 6."""
     lo, hi = 6.0 - door_width_m / 2, 6.0 + door_width_m / 2
     free = shapely.union_all([shapely.box(0, 0, 10, 2), shapely.box(4, 2.1, 8, 6), shapely.box(lo, 1.9, hi, 2.2)])
     walls = np.array([[[4.0, 2.0], [lo, 2.0]], [[hi, 2.0], [8.0, 2.0]]])
-    return free, walls, (lo, hi)
+    return free, walls
 
 
 def wall_clearance(path: np.ndarray, start: np.ndarray, free: shapely.Geometry) -> float:
@@ -23,7 +23,7 @@ def wall_clearance(path: np.ndarray, start: np.ndarray, free: shapely.Geometry) 
 
 
 def test_path_goes_through_the_door_and_keeps_clear_of_its_jambs():
-    free, walls, (lo, hi) = corridor_and_room(1.2)
+    free, walls = corridor_and_room(1.2)
     start, goal = np.array([1.0, 1.0]), np.array([7.0, 5.0])
     path = FreeSpaceGrid.build(free, walls, CLEARANCE_M).reach_from(start).path_to(goal)
     assert path is not None
@@ -38,7 +38,7 @@ def test_path_goes_through_the_door_and_keeps_clear_of_its_jambs():
 
 
 def test_a_door_narrower_than_the_vehicle_needs_has_no_path():
-    free, walls, _ = corridor_and_room(0.6)
+    free, walls = corridor_and_room(0.6)
     reach = FreeSpaceGrid.build(free, walls, CLEARANCE_M).reach_from(np.array([1.0, 1.0]))
     assert reach is not None
     assert reach.path_to(np.array([7.0, 5.0])) is None
@@ -46,7 +46,7 @@ def test_a_door_narrower_than_the_vehicle_needs_has_no_path():
 
 
 def test_obstacle_points_from_the_live_scan_block_a_path():
-    free, walls, _ = corridor_and_room(1.2)
+    free, walls = corridor_and_room(1.2)
     grid = FreeSpaceGrid.build(free, walls, CLEARANCE_M)
     blocking = np.column_stack((np.full(20, 5.0), np.linspace(0.0, 2.0, 20)))  # across the corridor
     reach = grid.with_blocked_points(blocking).reach_from(np.array([1.0, 1.0]))
@@ -57,7 +57,7 @@ def test_obstacle_points_from_the_live_scan_block_a_path():
 
 @pytest.mark.parametrize("start", [(1.0, 0.3), (0.2, 1.0)])
 def test_a_start_closer_to_a_wall_than_the_clearance_still_finds_its_way_out(start):
-    free, walls, _ = corridor_and_room(1.2)
+    free, walls = corridor_and_room(1.2)
     reach = FreeSpaceGrid.build(free, walls, CLEARANCE_M).reach_from(np.array(start))
     assert reach is not None
     path = reach.path_to(np.array([9.0, 1.0]))
@@ -66,7 +66,7 @@ def test_a_start_closer_to_a_wall_than_the_clearance_still_finds_its_way_out(sta
 
 
 def test_a_goal_in_unknown_space_is_not_reachable():
-    free, walls, _ = corridor_and_room(1.2)
+    free, walls = corridor_and_room(1.2)
     reach = FreeSpaceGrid.build(free, walls, CLEARANCE_M).reach_from(np.array([1.0, 1.0]))
     assert reach is not None
     assert reach.path_to(np.array([2.0, 5.0])) is None  # beside the room, never seen
