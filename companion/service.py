@@ -206,7 +206,8 @@ class Service:
             # The step runs in a worker thread so the setpoint stream never waits on it.
             result = await asyncio.to_thread(self._step, odom, scan, closures)
             if result.mode is Mode.COMPLETE:
-                return "unreachable_frontiers_left" if self.explorer.planner.set_aside else "complete"
+                unreachable = self.explorer.planner.unreachable(self.explorer.map)
+                return "unreachable_frontiers_left" if unreachable else "complete"
             self.setpoint = result.setpoint
             self.control.set_target(result.setpoint)
             if self._clock() >= self._next_progress_s:
@@ -273,7 +274,8 @@ class Service:
             "keyframes": len(m),
             "loop_closures": m.loop_closures,
             "frontiers_left": m.open_frontier_count(),
-            "frontiers_set_aside": len(self.explorer.planner.set_aside),
+            "frontiers_set_aside": len(self.explorer.planner.unreachable(self.explorer.map)),
+            "frontiers_closed_on_sight": self.explorer.planner.closed_on_sight,
             "inputs": {
                 "odometry": self.health.odometry_count,
                 "scans": self.health.scan_count,

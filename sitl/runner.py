@@ -57,7 +57,8 @@ class PolygonPolicy:
             "keyframes": len(m),
             "loop_closures": m.loop_closures,
             "frontiers_left": m.open_frontier_count(),
-            "frontiers_set_aside": len(planner.set_aside),
+            "frontiers_set_aside": len(planner.unreachable(m)),
+            "frontiers_closed_on_sight": planner.closed_on_sight,
         }
 
 
@@ -80,6 +81,7 @@ class GridPolicy:
             "loop_closures": 0,
             "frontiers_left": int(self.explorer.frontier_cells().sum()),
             "frontiers_set_aside": 0,
+            "frontiers_closed_on_sight": 0,
         }
 
 

@@ -83,3 +83,30 @@ def test_far_apart_views_are_not_neighbours():
     b = add_pose(m, Pose2(20.0, 0, 0), a)
     assert m.neighbourhood(b[0]) == {}
     assert m.graph.relative(a[0], b[0]).x_m == 20.0
+
+
+def chain_around_a_far_view(margin_per_hop_m: float) -> tuple[LocalMap, int]:
+    """A looks east; B, far away, does not overlap it; C, reached from A only through B, stands
+    3 m east of A and sees past A's arc."""
+    from companion.core.local_map import MapParams
+
+    m = LocalMap(MapParams(chain_margin_per_hop_m=margin_per_hop_m, chain_max_margin_m=5.0))
+    a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+    b = add_pose(m, Pose2(0.0, -20.0, -math.pi / 2), a)
+    add_pose(m, Pose2(3.0, 0.0, 0.0), b)
+    return m, a[0]
+
+
+def test_a_frontier_seen_past_by_a_view_outside_the_neighbourhood_is_closed_through_the_graph():
+    m, a = chain_around_a_far_view(0.05)
+    kf_a = m.keyframes[a]
+    ahead = (kf_a.polygon.vertices_xy[:, 0] > 4.5) & (np.abs(kf_a.polygon.vertices_xy[:, 1]) < 1.0)
+    assert np.all(kf_a.kinds[ahead] == VertexKind.FRONTIER)  # the neighbourhood walk stops at B
+    assert m.close_through_graph(a) >= np.count_nonzero(ahead)
+    assert np.all(kf_a.kinds[ahead] == VertexKind.FREE)
+
+
+def test_a_long_chain_needs_the_other_view_to_reach_deeper_beyond_the_frontier():
+    m, a = chain_around_a_far_view(2.0)  # two hops: 4 m of assumed drift, deeper than C reaches
+    assert m.close_through_graph(a) == 0
+    assert np.any(m.keyframes[a].kinds == VertexKind.FRONTIER)

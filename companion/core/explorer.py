@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
+from shapely import affinity
 
 from companion.core.errors import CoreError
 from companion.core.fov_polygon import PolygonParams, scan_to_polygon
@@ -100,7 +103,7 @@ class Explorer:
         self._last_odom: Odometry | None = None
         self._last_mode = Mode.EXPLORING
         self._pending_closures: list[LoopClosure] = []
-        self._live: tuple[Pose2, FloatArray] | None = None  # newest scan: its pose and returns
+        self._live: tuple[Pose2, FloatArray, DepthScan] | None = None  # newest scan: pose, returns, scan
 
     @property
     def mode(self) -> Mode:
@@ -117,7 +120,7 @@ class Explorer:
             self._apply_pending_closures()
         added = False
         if scan is not None:
-            self._live = (self.history.at(scan.stamp_s) or odom.pose, _returns_xy(scan))
+            self._live = (self.history.at(scan.stamp_s) or odom.pose, _returns_xy(scan), scan)
             added = self._maybe_add_keyframe(scan, odom)
         if self.current_id is None:
             hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
@@ -125,11 +128,18 @@ class Explorer:
             return StepResult(hold, Mode.EXPLORING, added, decision)
         vehicle = self.anchor.between(odom.pose)
         live = None
+        live_view: Callable[[], shapely.Geometry] | None = None
         if self._live is not None:
-            pose_at_scan, returns = self._live
-            live = self.anchor.between(pose_at_scan).apply(returns)
+            pose_at_scan, returns, newest = self._live
+            scan_pose = self.anchor.between(pose_at_scan)
+            live = scan_pose.apply(returns)
+
+            def live_view() -> shapely.Geometry:  # only built when the planner needs it
+                shape = scan_to_polygon(newest, self.params.polygon).shape
+                return affinity.affine_transform(shape, scan_pose.affine())
+
         velocity = self._velocity_in_frame(odom)
-        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s, live, velocity)
+        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view)
         if decision.relocalize_to is not None and decision.relocalize_to != self.current_id:
             rel = self.map.pose_in(self.current_id, decision.relocalize_to)
             self.anchor = self.anchor.compose(rel)

@@ -29,7 +29,7 @@ class GridParams:
     """Resolution of the free-space grid and how far from walls and unknown space its cells keep."""
 
     cell_m: float = 0.15
-    snap_m: float = 0.5  # a start or goal in a blocked cell is moved to the nearest free cell this close
+    snap_m: float = 0.4  # a start (or a goal that allows it) in a blocked cell moves to a free cell this close
     centring_cells: int = 3  # a path's corners move up to this many cells away from walls
 
 
@@ -110,6 +110,30 @@ class FreeSpaceGrid:
             depth += ~deeper
         return FreeSpaceGrid(self.origin_xy, self.cell_m, self.clearance_m, blocked, ~not_free, self.params, depth)
 
+    def with_live_scan(self, returns_xy: FloatArray, live_view: shapely.Geometry | None) -> FreeSpaceGrid:
+        """A copy that trusts the newest scan where it sees: cells inside its free-space polygon
+        are open even where an older (drifted) view put a wall or unknown space, and its returns
+        are blocked."""
+        if live_view is None or live_view.is_empty:
+            return self.with_blocked_points(returns_xy)
+        minx, miny, maxx, maxy = live_view.bounds
+        ny, nx = self.blocked.shape
+        j0 = max(0, int((minx - self.origin_xy[0]) / self.cell_m))
+        j1 = min(nx, int((maxx - self.origin_xy[0]) / self.cell_m) + 2)
+        i0 = max(0, int((miny - self.origin_xy[1]) / self.cell_m))
+        i1 = min(ny, int((maxy - self.origin_xy[1]) / self.cell_m) + 2)
+        blocked = self.blocked.copy()
+        if i0 < i1 and j0 < j1:
+            xs = self.origin_xy[0] + self.cell_m * np.arange(j0, j1)
+            ys = self.origin_xy[1] + self.cell_m * np.arange(i0, i1)
+            gx, gy = np.meshgrid(xs, ys)
+            seen = shapely.contains_xy(live_view, gx.ravel(), gy.ravel()).reshape(gy.shape)
+            blocked[i0:i1, j0:j1] &= ~seen
+        opened = FreeSpaceGrid(
+            self.origin_xy, self.cell_m, self.clearance_m, blocked, self.free, self.params, self.depth
+        )
+        return opened.with_blocked_points(returns_xy, erode=True)
+
     def is_free(self, points_xy: FloatArray) -> NDArray[np.bool_]:
         ij = self._cells(points_xy)
         ok = (ij[:, 0] >= 0) & (ij[:, 0] < self.free.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < self.free.shape[1])
@@ -179,11 +203,19 @@ class Reach:
     start_xy: FloatArray
     steps: NDArray[np.int32]
 
-    def path_to(self, goal_xy: FloatArray) -> FloatArray | None:
+    def path_to(self, goal_xy: FloatArray, snap: bool = False) -> FloatArray | None:
         """Waypoints (K, 2) from the start to ``goal_xy``, the goal last, shortened by line of
-        sight over free cells; None when the goal is not connected to the start."""
+        sight over free cells; None when the goal is not connected to the start. A goal closer to
+        a wall than the clearance is not reached, unless ``snap``: then the path ends at the
+        nearest free cell within ``snap_m`` instead (e.g. a keyframe taken close to a wall)."""
         g = self.grid
-        goal_cell = g._snap(goal_xy, self.steps != _UNREACHED)
+        reached = self.steps != _UNREACHED
+        if snap:
+            goal_cell = g._snap(goal_xy, reached)
+        else:
+            i, j = (int(v) for v in g._cells(np.asarray(goal_xy))[0])
+            inside = 0 <= i < reached.shape[0] and 0 <= j < reached.shape[1]
+            goal_cell = (i, j) if inside and reached[i, j] else None
         if goal_cell is None:
             return None
         cells = [goal_cell]
@@ -202,7 +234,8 @@ class Reach:
             cells.append(best)
         cells.reverse()
         pts = [g.cell_centre(a, b) for a, b in cells]
-        pts[-1] = np.asarray(goal_xy, dtype=np.float64)
+        if cells[-1] == tuple(int(v) for v in g._cells(np.asarray(goal_xy))[0]):
+            pts[-1] = np.asarray(goal_xy, dtype=np.float64)
         return self._centre(self._shorten(pts))
 
     def _shorten(self, pts: list[FloatArray]) -> FloatArray:

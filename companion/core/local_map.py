@@ -32,6 +32,11 @@ class MapParams:
 
     closing_offset_m: float = 0.15  # how far beyond a frontier vertex another view must reach
     wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
+    # Closing against views outside the neighbourhood, reached along the pose graph: the view
+    # must reach farther beyond the vertex the longer the chain (drift accumulates along it).
+    chain_margin_per_hop_m: float = 0.05
+    chain_max_margin_m: float = 1.0
+    chain_max_hops: int = 400
 
 
 @dataclass(slots=True)
@@ -158,6 +163,42 @@ class LocalMap:
         seen: NDArray[np.bool_] = shapely.contains_xy(view.grown, pts[:, 0], pts[:, 1])
         kf.kinds[indices[seen]] = VertexKind.FREE
         return seen
+
+    def close_through_graph(self, keyframe_id: int) -> int:
+        """Eq. 2.15 for a keyframe's open frontiers against every view the pose graph reaches, not
+        only its neighbourhood: a view on the far side of a block, joined to this one only by a
+        long chain, may have seen beyond them. The space beyond must lie that much deeper inside
+        the other view the more hops the chain has. Returns how many were closed."""
+        kf = self.keyframes[keyframe_id]
+        idx = kf.open_frontier_indices()
+        if idx.size == 0:
+            return 0
+        p = self.params
+        nbrs = self._neighbours[keyframe_id]
+        still_open = np.ones(idx.size, dtype=bool)
+        for visit in self.graph.walk(keyframe_id):
+            if visit.hops > p.chain_max_hops:
+                break
+            k, pose = visit.keyframe_id, visit.pose_in_start
+            if k == keyframe_id or k in nbrs:
+                continue
+            other = self.keyframes[k]
+            if math.hypot(pose.x_m, pose.y_m) > kf.radius_m + other.radius_m:
+                continue
+            offset = p.closing_offset_m + min(p.chain_max_margin_m, p.chain_margin_per_hop_m * visit.hops)
+            open_idx = np.flatnonzero(still_open)
+            pts = pose.inverse().apply(kf.beyond_points(idx[open_idx], offset))
+            still_open[open_idx[shapely.contains_xy(other.polygon.shape, pts[:, 0], pts[:, 1])]] = False
+            if not still_open.any():
+                break
+        closed = idx[~still_open]
+        kf.kinds[closed] = VertexKind.FREE
+        return int(closed.size)
+
+    def close_frontiers(self, keyframe_id: int, indices: NDArray[np.intp]) -> None:
+        """Type frontier vertices free: looked at, nothing beyond them to explore."""
+        kf = self.keyframes[keyframe_id]
+        kf.kinds[indices[kf.kinds[indices] == VertexKind.FRONTIER]] = VertexKind.FREE
 
     def open_frontier_count(self) -> int:
         return int(sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values()))

@@ -18,6 +18,7 @@ open after ``max_attempts`` visits, or stay out of reach, are set aside so explo
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -25,6 +26,7 @@ import numpy as np
 import shapely
 
 from companion.core.errors import GraphError
+from companion.core.fov_polygon import VertexKind
 from companion.core.free_space_grid import FreeSpaceGrid, GridParams, Reach
 from companion.core.frontiers import FrontierKey, targetable_indices
 from companion.core.geometry import FloatArray, Pose2, wrap_angle, wrap_angles
@@ -61,6 +63,8 @@ class PlannerParams:
     side_shift_m: float = 0.5  # sideways goal shift tried from a keyframe's origin
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
     grid: GridParams = field(default_factory=GridParams)  # paths where a straight line is blocked
+    goal_clearance_m: float = 0.3  # where a straight path ends keeps this clear, however close the start
+    blocked_cooldown_s: float = 5.0  # a goal dropped as blocked is not taken again for this long
     corner_reached_m: float = 0.25  # a path's corner counts as passed this close (slow, no overshoot)
     corner_speed_mps: float = 0.5  # and a waypoint as reached only this slow: a sharp turn after it
     # must not carry the vehicle's momentum sideways into a wall
@@ -140,11 +144,17 @@ class FrontierPlanner:
     attempts: dict[FrontierKey, int] = field(default_factory=dict)
     set_aside: set[FrontierKey] = field(default_factory=set)
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
+    closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
+    closed_through_graph: int = 0  # frontiers closed by a view outside their neighbourhood
+    _graph_checked: dict[int, int] = field(default_factory=dict)  # keyframe -> map size when checked
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     _progress_target: int | None = None
     _progress_s: float = 0.0
     _leg: _Leg | None = None
+    _cooling: dict[FrontierKey, float] = field(default_factory=dict)  # dropped goal -> until when
     _speed_mps: float = 0.0
+    _velocity: FloatArray = field(default_factory=lambda: np.zeros(2))
+    _live_view: Callable[[], shapely.Geometry] | None = None
     _grid: tuple[LocalView, FreeSpaceGrid] | None = None
     _grid_tried: tuple[LocalView, int, int] | None = None  # (view, cell): the grid found nothing there
 
@@ -156,6 +166,7 @@ class FrontierPlanner:
         stamp_s: float,
         live_obstacles_xy: FloatArray | None = None,
         velocity_xy: tuple[float, float] | None = None,
+        live_view: Callable[[], shapely.Geometry] | None = None,
     ) -> Decision:
         """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame).
 
@@ -163,11 +174,16 @@ class FrontierPlanner:
         checked against them (thesis 2.9.2: the current view must not head into an obstacle), so a
         drifted neighbour view can never clear a path the sensor sees blocked now. ``velocity_xy``
         (m/s, same frame) gates waypoint arrival: one counts as reached only once slow enough.
+        ``live_view`` builds the newest scan's free-space polygon (same frame) on demand: paths
+        through free space trust it over older, drifted views where they disagree.
         """
         view = local_map.view(frame_id)
         here = np.array([vehicle.x_m, vehicle.y_m])
         self._live = np.zeros((0, 2)) if live_obstacles_xy is None else live_obstacles_xy
-        self._speed_mps = 0.0 if velocity_xy is None else math.hypot(*velocity_xy)
+        self._velocity = np.zeros(2) if velocity_xy is None else np.array(velocity_xy, dtype=np.float64)
+        self._speed_mps = float(np.hypot(*self._velocity))
+        self._live_view = live_view
+        self._cooling = {k: t for k, t in self._cooling.items() if t > stamp_s}
         required = self._required_clearance(view, here)
 
         if self.goal is not None:
@@ -215,7 +231,7 @@ class FrontierPlanner:
         if goal.arrived_s is not None and stamp_s - goal.arrived_s >= self.params.settle_s:
             # Looked at it from its goal and it stays open: the space is seen, the vertex is stale
             # (its closing view is not in its neighbourhood). So are its close neighbours.
-            self._close_or_set_aside_around(local_map, frame_id, goal.key)
+            self._close_looked_at(local_map, frame_id, goal.key)
             self.goal = None
             return None
         if goal.arrived_s is None and stamp_s > goal.deadline_s:
@@ -229,15 +245,24 @@ class FrontierPlanner:
             goal.path = goal.path[-pts.shape[0] :]
             if pts.shape[0] > 1:
                 if self._leg_blocked(vehicle, here, pts[0], required):
-                    self.goal = None
+                    self._drop(goal.key, stamp_s)
                     return None
                 return self._fly(vehicle, pts[0], look, Mode.EXPLORING, goal.key)
             goal.path = None
-        blocked = dist > self.params.goal_reached_m and not self._accessible(view, here, goal_xy, required)
-        if goal.arrived_s is None and blocked:
-            self.goal = None
+        if goal.arrived_s is not None:
+            # Settle where it arrived: a new keyframe may re-express the goal a little elsewhere
+            # (another chain of the graph), and chasing that would creep towards walls.
+            return Decision(Mode.EXPLORING, Target(vehicle.x_m, vehicle.y_m, look), goal.key)
+        if dist > self.params.goal_reached_m and not self._accessible(view, here, goal_xy, required):
+            self._drop(goal.key, stamp_s)
             return None
         return self._fly(vehicle, goal_xy, look, Mode.EXPLORING, goal.key)
+
+    def _drop(self, key: FrontierKey, stamp_s: float) -> None:
+        """Give up a goal found blocked on the way, and leave it alone for a while: two goals
+        that block each other in turn must not hold the vehicle flipping between them."""
+        self.goal = None
+        self._cooling[key] = stamp_s + self.params.blocked_cooldown_s
 
     def _leg_blocked(self, vehicle: Pose2, here: FloatArray, wp: FloatArray, required: float) -> bool:
         """The newest scan sees the leg to ``wp`` blocked (judged once facing it: the sensor looks
@@ -258,19 +283,29 @@ class FrontierPlanner:
         look = wrap_angle(c.look_rad + pose.yaw_rad)
         self.goal = _Goal(c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path)
 
-    def _close_or_set_aside_around(self, local_map: LocalMap, frame_id: int, key: FrontierKey) -> None:
-        """The frontier and its close neighbours: closed where the view from here saw beyond them
-        (eq. 2.15 against the current view), set aside where it did not."""
+    def _close_looked_at(self, local_map: LocalMap, frame_id: int, key: FrontierKey) -> None:
+        """The vehicle looked at this frontier from its goal, a view was taken there, and it stays
+        open: nothing beyond it can be seen from where a frontier is explored (a wall the vertex's
+        own view missed, or a view that drifted off it). It and its close neighbours are closed:
+        by eq. 2.15 against the current view where that saw beyond them, as looked at otherwise."""
         kf = local_map.keyframes[key.keyframe_id]
         xy = kf.polygon.vertices_xy
         near = np.hypot(*(xy - xy[key.index]).T) <= self.params.stale_radius_m
-        idx = np.flatnonzero(near & (kf.kinds == 1))
+        near[key.index] = True
+        idx = np.flatnonzero(near & (kf.kinds == VertexKind.FRONTIER))
         if idx.size:
             seen = local_map.close_seen_from(frame_id, key.keyframe_id, idx)
-            for i in idx[~seen]:
-                self.set_aside.add(FrontierKey(key.keyframe_id, int(i)))
-        if kf.kinds[key.index] == 1:
-            self.set_aside.add(key)
+            stale = idx[~seen]
+            local_map.close_frontiers(key.keyframe_id, stale)
+            self.closed_on_sight += int(stale.size)
+
+    def unreachable(self, local_map: LocalMap) -> list[FrontierKey]:
+        """Frontiers set aside after failed tries that no view has closed since."""
+        return [
+            k
+            for k in sorted(self.set_aside, key=lambda k: (k.keyframe_id, k.index))
+            if local_map.keyframes[k.keyframe_id].kinds[k.index] == VertexKind.FRONTIER
+        ]
 
     def _failed(self, key: FrontierKey) -> None:
         n = self.attempts.get(key, 0) + 1
@@ -300,7 +335,8 @@ class FrontierPlanner:
             idx = targetable_indices(kf, p.min_frontier_size_m)
             if idx.size == 0:
                 continue
-            idx = np.array([i for i in idx if FrontierKey(k, int(i)) not in self.set_aside], dtype=np.intp)
+            skip = self.set_aside | self._cooling.keys()
+            idx = np.array([i for i in idx if FrontierKey(k, int(i)) not in skip], dtype=np.intp)
             if idx.size == 0:
                 continue
             v = kf.polygon.vertices_xy[idx]
@@ -373,7 +409,8 @@ class FrontierPlanner:
         if self._grid is None or self._grid[0] is not view:
             segs = shapely.get_coordinates(view.obstacles).reshape(-1, 2, 2)
             self._grid = (view, FreeSpaceGrid.build(view.grown, segs, self.params.clearance_m, self.params.grid))
-        grid = self._grid[1].with_blocked_points(self._live)
+        live_view = None if self._live_view is None else self._live_view()
+        grid = self._grid[1].with_live_scan(self._live, live_view)
         return grid.reach_from(here)
 
     # -- accessibility (2.9.2) ------------------------------------------------------------------
@@ -401,8 +438,15 @@ class FrontierPlanner:
             return False
         if self._live.shape[0] and _segment_clearance(start, goal, self._live) < required:
             return False
+        # The start may be closer to a wall than the clearance (so the vehicle can always move
+        # away); the end may not, or a vehicle near a wall would creep along closer and closer.
+        end = self.params.goal_clearance_m
+        if self._live.shape[0] and float(np.min(np.hypot(*(self._live - goal).T))) < end:
+            return False
         if view.obstacles.is_empty:
             return True
+        if float(shapely.distance(shapely.Point(goal), view.obstacles)) < end:
+            return False
         return float(shapely.distance(path, view.obstacles)) >= required
 
     # -- classical fallback (2.9.3) -------------------------------------------------------------
@@ -509,17 +553,15 @@ class FrontierPlanner:
             pts = local_map.pose_in(frame_id, leg.frame_id).apply(leg.points)
             while pts.shape[0] > 1 and self._reached(pts[0], here, self.params.corner_reached_m):
                 pts = pts[1:]
-            pts[-1] = wp
             self._leg = _Leg(frame_id, keyframe_id, pts)
             return pts, False
         leg_required = min(required, self.params.body_radius_m + self.params.leg_margin_m)
         pts = wp[None, :]
         if not self._accessible(view, here, wp, leg_required):
             reach = self._reach(view, here)
-            path = None if reach is None else reach.path_to(wp)
+            path = None if reach is None else reach.path_to(wp, snap=True)
             if path is not None:
                 pts = path
-                pts[-1] = wp
         self._leg = _Leg(frame_id, keyframe_id, pts)
         return pts, True
 
@@ -536,6 +578,16 @@ class FrontierPlanner:
         idx = targetable_indices(kf, self.params.min_frontier_size_m)
         return any(FrontierKey(keyframe_id, int(i)) not in self.set_aside for i in idx)
 
+    def _has_live_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
+        """Open frontiers worth a flight once views along the pose graph are checked too (once
+        per keyframe and map size: a stale frontier costs a look, not a flight)."""
+        if not self._has_targets(local_map, keyframe_id):
+            return False
+        if self._graph_checked.get(keyframe_id) != len(local_map):
+            self._graph_checked[keyframe_id] = len(local_map)
+            self.closed_through_graph += local_map.close_through_graph(keyframe_id)
+        return self._has_targets(local_map, keyframe_id)
+
     def _find_route(self, local_map: LocalMap, frame_id: int, target_id: int | None = None) -> _Route | None:
         """Fewest-hop route to ``target_id`` (default: the nearest keyframe with open frontiers)
         that avoids the legs seen blocked; None when there is none."""
@@ -543,7 +595,7 @@ class FrontierPlanner:
             targets = [target_id]
         else:
             walk = local_map.graph.walk(frame_id)
-            targets = [v.keyframe_id for v in walk if self._has_targets(local_map, v.keyframe_id)]
+            targets = [v.keyframe_id for v in walk if self._has_live_targets(local_map, v.keyframe_id)]
         for k in targets:
             try:
                 path = local_map.graph.path(frame_id, k, avoid=self.blocked_legs)
@@ -552,11 +604,11 @@ class FrontierPlanner:
             return _Route(path[1:] if len(path) > 1 else path, k)
         if target_id is None and targets:
             # Frontiers are left but every route to them crosses a leg once seen blocked: those
-            # sightings may have been drift or a passing scan artefact, so forget them, and let the
-            # frontiers count a failed try (which bounds how often this can happen).
+            # sightings may have been drift or a passing scan artefact (or taken from a bad spot,
+            # such as a doorway), so forget them, and let the nearest target's frontiers count a
+            # failed try (which bounds how often this can happen without giving up on the rest).
             self.blocked_legs.clear()
-            for k in targets:
-                self._fail_keyframe(local_map, k)
+            self._fail_keyframe(local_map, targets[0])
             return self._find_route(local_map, frame_id)
         return None
 
@@ -570,13 +622,19 @@ class FrontierPlanner:
         mode: Mode,
         key: FrontierKey | None,
     ) -> Decision:
-        """Turn towards the goal before moving, so the sensor sees the path it flies."""
+        """Turn towards the goal before moving, so the sensor sees the path it flies; and brake
+        first when moving fast in another direction, so momentum does not carry the vehicle off
+        the checked path (it would slide sideways through the turn)."""
         delta = goal_xy - np.array([vehicle.x_m, vehicle.y_m])
         dist = float(np.hypot(*delta))
         if dist <= self.params.goal_reached_m:
             return Decision(mode, Target(float(goal_xy[0]), float(goal_xy[1]), look_rad), key)
         travel = float(np.arctan2(delta[1], delta[0]))
-        if abs(wrap_angle(travel - vehicle.yaw_rad)) > self.params.turn_first_rad:
+        moving = float(np.arctan2(self._velocity[1], self._velocity[0]))
+        sliding = self._speed_mps > self.params.corner_speed_mps and (
+            abs(wrap_angle(travel - moving)) > self.params.turn_first_rad
+        )
+        if sliding or abs(wrap_angle(travel - vehicle.yaw_rad)) > self.params.turn_first_rad:
             return Decision(mode, Target(vehicle.x_m, vehicle.y_m, travel), key)
         return Decision(mode, Target(float(goal_xy[0]), float(goal_xy[1]), travel), key)
 
