@@ -22,6 +22,7 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check companion sitl tests benchmarks
+	$(BIN)/ruff format --check companion sitl tests benchmarks
 	$(BIN)/mypy --strict companion/core
 
 bench: $(STAMP)
