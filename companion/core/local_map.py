@@ -234,10 +234,6 @@ class LocalMap:
             self._views.pop(other_id, None)
         self._close_at_walls(kf_id, nbrs)
         self.view(kf_id)
-        # Its own frontiers against every view the graph reaches: without loop closures (or
-        # before one), a revisited place is not in the neighbourhood, and a new view's edge
-        # there would send the vehicle round the same room again.
-        self.close_through_graph(kf_id)
 
     def _close_in_grown(self, view: LocalView) -> None:
         """Eq. 2.15: a frontier vertex whose outside lies in the grown free space is free."""
