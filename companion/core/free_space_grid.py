@@ -13,7 +13,7 @@ numpy only for the search (a vectorised wavefront, no per-cell Python loop); sha
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import shapely
@@ -84,31 +84,19 @@ class FreeSpaceGrid:
         x0, y0 = minx - pad, miny - pad
         nx = max(1, math.ceil((maxx + pad - x0) / cell))
         ny = max(1, math.ceil((maxy + pad - y0) / cell))
-        xs = x0 + cell * np.arange(nx)
-        ys = y0 + cell * np.arange(ny)
-        gx, gy = np.meshgrid(xs, ys)
-        inside = shapely.contains_xy(free_space, gx.ravel(), gy.ravel()).reshape(ny, nx)
-        blocked = ~inside
-        grid = FreeSpaceGrid((x0, y0), cell, clearance_m, blocked, blocked, p, blocked.astype(np.int8))
-        return grid.with_blocked_points(_sample_segments(obstacle_segments, cell / 2.0), erode=True)
+        empty = np.zeros((ny, nx), dtype=bool)
+        grid = FreeSpaceGrid((x0, y0), cell, clearance_m, empty, empty, p, empty.astype(np.int8))
+        blocked = ~grid._inside(free_space, 0, ny, 0, nx)
+        grid._mark(blocked, _sample_segments(obstacle_segments, cell / 2.0))
+        return grid._eroded(blocked)
 
-    def with_blocked_points(self, points_xy: FloatArray, erode: bool = False) -> FreeSpaceGrid:
+    def with_blocked_points(self, points_xy: FloatArray) -> FreeSpaceGrid:
         """A copy with cells at the points blocked too (e.g. the newest scan's returns)."""
-        blocked = self.blocked.copy()
-        if points_xy.shape[0]:
-            ij = self._cells(points_xy)
-            ok = (ij[:, 0] >= 0) & (ij[:, 0] < blocked.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < blocked.shape[1])
-            blocked[ij[ok, 0], ij[ok, 1]] = True
-        radius_cells = max(0.0, (self.clearance_m - self.cell_m / 2.0) / self.cell_m)
-        if not (erode or points_xy.shape[0]):
+        if points_xy.shape[0] == 0:
             return self
-        not_free = _dilate(blocked, _disk_offsets(radius_cells))
-        depth = np.zeros(blocked.shape, dtype=np.int8)
-        deeper = not_free
-        for _ in range(self.params.centring_cells):
-            deeper = _dilate(deeper, _CROSS)
-            depth += ~deeper
-        return FreeSpaceGrid(self.origin_xy, self.cell_m, self.clearance_m, blocked, ~not_free, self.params, depth)
+        blocked = self.blocked.copy()
+        self._mark(blocked, points_xy)
+        return self._eroded(blocked)
 
     def with_live_scan(self, returns_xy: FloatArray, live_view: shapely.Geometry | None) -> FreeSpaceGrid:
         """A copy that trusts the newest scan where it sees: cells inside its free-space polygon
@@ -124,19 +112,13 @@ class FreeSpaceGrid:
         i1 = min(ny, int((maxy - self.origin_xy[1]) / self.cell_m) + 2)
         blocked = self.blocked.copy()
         if i0 < i1 and j0 < j1:
-            xs = self.origin_xy[0] + self.cell_m * np.arange(j0, j1)
-            ys = self.origin_xy[1] + self.cell_m * np.arange(i0, i1)
-            gx, gy = np.meshgrid(xs, ys)
-            seen = shapely.contains_xy(live_view, gx.ravel(), gy.ravel()).reshape(gy.shape)
-            blocked[i0:i1, j0:j1] &= ~seen
-        opened = FreeSpaceGrid(
-            self.origin_xy, self.cell_m, self.clearance_m, blocked, self.free, self.params, self.depth
-        )
-        return opened.with_blocked_points(returns_xy, erode=True)
+            blocked[i0:i1, j0:j1] &= ~self._inside(live_view, i0, i1, j0, j1)
+        self._mark(blocked, returns_xy)
+        return self._eroded(blocked)
 
     def is_free(self, points_xy: FloatArray) -> NDArray[np.bool_]:
         ij = self._cells(points_xy)
-        ok = (ij[:, 0] >= 0) & (ij[:, 0] < self.free.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < self.free.shape[1])
+        ok = self._in_grid(ij)
         out = np.zeros(points_xy.shape[0], dtype=bool)
         out[ok] = self.free[ij[ok, 0], ij[ok, 1]]
         return out
@@ -168,6 +150,38 @@ class FreeSpaceGrid:
 
     def cell_centre(self, i: int, j: int) -> FloatArray:
         return np.array([self.origin_xy[0] + j * self.cell_m, self.origin_xy[1] + i * self.cell_m])
+
+    def _in_grid(self, ij: NDArray[np.intp]) -> NDArray[np.bool_]:
+        ny, nx = self.blocked.shape
+        inside: NDArray[np.bool_] = (ij[:, 0] >= 0) & (ij[:, 0] < ny) & (ij[:, 1] >= 0) & (ij[:, 1] < nx)
+        return inside
+
+    def _inside(self, shape: shapely.Geometry, i0: int, i1: int, j0: int, j1: int) -> NDArray[np.bool_]:
+        """Which cells of rows i0:i1, columns j0:j1 have their centre inside ``shape``."""
+        gx, gy = np.meshgrid(
+            self.origin_xy[0] + self.cell_m * np.arange(j0, j1), self.origin_xy[1] + self.cell_m * np.arange(i0, i1)
+        )
+        inside: NDArray[np.bool_] = shapely.contains_xy(shape, gx.ravel(), gy.ravel()).reshape(gx.shape)
+        return inside
+
+    def _mark(self, blocked: NDArray[np.bool_], points_xy: FloatArray) -> None:
+        """Block (in place) the cells the points fall in."""
+        if points_xy.shape[0]:
+            ij = self._cells(points_xy)
+            ij = ij[self._in_grid(ij)]
+            blocked[ij[:, 0], ij[:, 1]] = True
+
+    def _eroded(self, blocked: NDArray[np.bool_]) -> FreeSpaceGrid:
+        """The grid for these blocked cells: free where no blocked cell is within the clearance,
+        and how many cells deeper than that each free cell lies."""
+        radius_cells = max(0.0, (self.clearance_m - self.cell_m / 2.0) / self.cell_m)
+        not_free = _dilate(blocked, _disk_offsets(radius_cells))
+        depth = np.zeros(blocked.shape, dtype=np.int8)
+        deeper = not_free
+        for _ in range(self.params.centring_cells):
+            deeper = _dilate(deeper, _CROSS)
+            depth += ~deeper
+        return replace(self, blocked=blocked, free=~not_free, depth=depth)
 
     def _cells(self, points_xy: FloatArray) -> NDArray[np.intp]:
         pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)

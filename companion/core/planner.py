@@ -145,7 +145,6 @@ class FrontierPlanner:
     set_aside: set[FrontierKey] = field(default_factory=set)
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
-    closed_through_graph: int = 0  # frontiers closed by a view outside their neighbourhood
     _graph_checked: dict[int, int] = field(default_factory=dict)  # keyframe -> map size when checked
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     _progress_target: int | None = None
@@ -240,8 +239,7 @@ class FrontierPlanner:
             return None
         if goal.path is not None and goal.arrived_s is None:
             pts = pose.apply(goal.path)
-            while pts.shape[0] > 1 and self._reached(pts[0], here, self.params.corner_reached_m):
-                pts = pts[1:]
+            pts = self._past_corners(pts, here)
             goal.path = goal.path[-pts.shape[0] :]
             if pts.shape[0] > 1:
                 if self._leg_blocked(vehicle, here, pts[0], required):
@@ -258,6 +256,16 @@ class FrontierPlanner:
             return None
         return self._fly(vehicle, goal_xy, look, Mode.EXPLORING, goal.key)
 
+    def _leg_required(self, required: float) -> float:
+        """A leg through known free space needs the body radius clear, not the whole margin."""
+        return min(required, self.params.body_radius_m + self.params.leg_margin_m)
+
+    def _past_corners(self, path: FloatArray, here: FloatArray) -> FloatArray:
+        """The path without the corners already passed (its last point always stays)."""
+        while path.shape[0] > 1 and self._reached(path[0], here, self.params.corner_reached_m):
+            path = path[1:]
+        return path
+
     def _drop(self, key: FrontierKey, stamp_s: float) -> None:
         """Give up a goal found blocked on the way, and leave it alone for a while: two goals
         that block each other in turn must not hold the vehicle flipping between them."""
@@ -269,8 +277,9 @@ class FrontierPlanner:
         ahead). A leg through free space needs the body radius clear, not the whole margin."""
         travel = float(np.arctan2(*(wp - here)[::-1]))
         facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
-        leg_required = min(required, self.params.body_radius_m + self.params.leg_margin_m)
-        return bool(facing and self._live.shape[0] and _segment_clearance(here, wp, self._live) < leg_required)
+        if not (facing and self._live.shape[0]):
+            return False
+        return _segment_clearance(here, wp, self._live) < self._leg_required(required)
 
     def _commit(self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float) -> None:
         pose = local_map.pose_in(frame_id, c.key.keyframe_id).inverse()
@@ -551,13 +560,11 @@ class FrontierPlanner:
         leg = self._leg
         if leg is not None and leg.keyframe_id == keyframe_id:
             pts = local_map.pose_in(frame_id, leg.frame_id).apply(leg.points)
-            while pts.shape[0] > 1 and self._reached(pts[0], here, self.params.corner_reached_m):
-                pts = pts[1:]
+            pts = self._past_corners(pts, here)
             self._leg = _Leg(frame_id, keyframe_id, pts)
             return pts, False
-        leg_required = min(required, self.params.body_radius_m + self.params.leg_margin_m)
         pts = wp[None, :]
-        if not self._accessible(view, here, wp, leg_required):
+        if not self._accessible(view, here, wp, self._leg_required(required)):
             reach = self._reach(view, here)
             path = None if reach is None else reach.path_to(wp, snap=True)
             if path is not None:
@@ -585,7 +592,7 @@ class FrontierPlanner:
             return False
         if self._graph_checked.get(keyframe_id) != len(local_map):
             self._graph_checked[keyframe_id] = len(local_map)
-            self.closed_through_graph += local_map.close_through_graph(keyframe_id)
+            local_map.close_through_graph(keyframe_id)
         return self._has_targets(local_map, keyframe_id)
 
     def _find_route(self, local_map: LocalMap, frame_id: int, target_id: int | None = None) -> _Route | None:
