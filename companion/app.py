@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from companion.config import Config
+from companion.core.explorer import ExplorerParams
+from companion.core.local_map import MapParams
 from companion.errors import CompanionError
 from companion.links.base import FlightControl, InputSource
 from companion.service import Service, ServiceSettings
@@ -90,6 +92,7 @@ async def run_service(config: Config, report_path: Path | None) -> int:
             ),
             inputs,
             control,
+            explorer_params=explorer_params(config),
             on_status=None if outputs is None else _publisher(outputs, drops),
         )
         task = asyncio.create_task(service.run())
@@ -157,3 +160,9 @@ def _publisher(outputs: Any, drops: Any) -> Any:
         outputs.update(h.state.value, h.reason, health, service.explorer.map, service.setpoint)
 
     return publish
+
+
+def explorer_params(config: Config) -> ExplorerParams:
+    """The map and planner tuning a config implies: without a loop-closure source, new views are
+    closed against every view along the pose graph (see MapParams.close_new_through_graph)."""
+    return ExplorerParams(map=MapParams(close_new_through_graph=config.inputs.loop_closure == "none"))

@@ -64,3 +64,9 @@ def two_rooms(tmp_path: Path) -> Path:
     wall_a = square(5.0, 0.0, 5.2, 2.4)
     wall_b = square(5.0, 3.6, 5.2, 6.0)
     return write_map(tmp_path / "two_rooms.geojson", square(0, 0, 10, 6), [wall_a, wall_b], (1.0, 3.0), 0.0)
+
+
+@pytest.fixture
+def shipped_maps() -> Path:
+    """The maps shipped in config/maps."""
+    return Path(__file__).resolve().parents[1] / "config" / "maps"

@@ -6,11 +6,16 @@ import math
 import numpy as np
 import pytest
 
+from companion.app import explorer_params
 from companion.cli import main
-from companion.core.explorer import Explorer
+from companion.config import Config
+from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.geometry import Pose2
+from companion.core.local_map import MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry
 from sitl.runner import run_exploration
+from sitl.simulation import SimParams
+from sitl.slam import SlamParams
 from sitl.world import load_world
 
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
@@ -30,6 +35,29 @@ def test_polygon_explorer_finds_the_room_behind_the_door(two_rooms):
     assert trace.report["collisions"] == 0
     assert trace.report["coverage"] >= 0.99
     assert max(p.x_m for p in trace.true_path) > 5.5  # it went through the door
+
+
+def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
+    """A plain MAVLink vehicle reports no loop closures: closing new views along the pose graph
+    lets the room end (not run to the time limit) at full coverage."""
+    base = SimParams()
+    no_slam = SimParams(base.sensor, base.vehicle, base.drift, SlamParams(enabled=False), base.physics_rate_hz)
+    params = ExplorerParams(map=MapParams(close_new_through_graph=True))
+    world = load_world(shipped_maps / "room.geojson")
+    r = run_exploration(world, "polygon", seed=1, max_time_s=900, sim_params=no_slam, explorer_params=params).report
+    assert r["loop_closures"] == 0
+    assert r["termination"] in ("complete", "unreachable_frontiers_left")
+    assert r["exploration_time_s"] < 900
+    assert r["coverage"] >= 0.99
+    assert r["collisions"] == 0
+
+
+@pytest.mark.parametrize(("source", "along_graph"), [("none", True), ("zenoh", False)])
+def test_config_without_a_loop_closure_source_closes_views_along_the_graph(source, along_graph):
+    config = Config.model_validate(
+        {"vehicle": {"mavlink": "udpin:127.0.0.1:14540"}, "inputs": {"loop_closure": source}}
+    )
+    assert explorer_params(config).map.close_new_through_graph is along_graph
 
 
 def test_explorer_turns_a_loop_closure_into_a_graph_edge():

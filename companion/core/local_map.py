@@ -37,6 +37,11 @@ class MapParams:
     chain_margin_per_hop_m: float = 0.05
     chain_max_margin_m: float = 1.0
     chain_max_hops: int = 400
+    # Without a SLAM back end (no loop closures), a revisited place never joins the neighbourhood
+    # and a new view's frontiers there would send the vehicle round the same room for ever: close
+    # each new keyframe's frontiers against every view along the graph too. It can close a real
+    # frontier where drift exceeds the margin, so it is off when loop closures arrive.
+    close_new_through_graph: bool = False
 
 
 @dataclass(slots=True)
@@ -234,6 +239,8 @@ class LocalMap:
             self._views.pop(other_id, None)
         self._close_at_walls(kf_id, nbrs)
         self.view(kf_id)
+        if self.params.close_new_through_graph:
+            self.close_through_graph(kf_id)
 
     def _close_in_grown(self, view: LocalView) -> None:
         """Eq. 2.15: a frontier vertex whose outside lies in the grown free space is free."""
