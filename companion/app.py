@@ -164,9 +164,5 @@ def _publisher(outputs: Any, drops: Any) -> Any:
 
 def explorer_params(config: Config) -> ExplorerParams:
     """The map and planner tuning a config implies: without a loop-closure source, new views are
-    closed against every view along the pose graph (see MapParams.close_new_through_graph); the
-    setpoint lead bounds the speed."""
-    return ExplorerParams(
-        map=MapParams(close_new_through_graph=config.inputs.loop_closure == "none"),
-        max_setpoint_lead_m=config.vehicle.max_setpoint_lead_m,
-    )
+    closed against every view along the pose graph (see MapParams.close_new_through_graph)."""
+    return ExplorerParams(map=MapParams(close_new_through_graph=config.inputs.loop_closure == "none"))

@@ -35,10 +35,6 @@ class ExplorerParams:
     backtrack_keyframe_distance_m: float = 3.0  # fewer new views while flying through known space
     loop_closure_max_gap_s: float = 5.0  # a loop closure needs a keyframe this close in time
     velocity_window_s: float = 0.2  # odometry differenced over this long for the vehicle's velocity
-    # A setpoint is never farther than this from the vehicle: an autopilot flies a far position
-    # target at its own cruise speed (PX4 MPC_XY_CRUISE, ArduPilot WPNAV_SPEED: metres per
-    # second), a near one about as fast as its position gain makes of the distance.
-    max_setpoint_lead_m: float = 1.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,7 +153,6 @@ class Explorer:
         else:
             x, y = self.anchor.apply_point(t.x_m, t.y_m)
             sp = Setpoint(x, y, wrap_angle(t.yaw_rad + self.anchor.yaw_rad))
-        sp = _within_lead(sp, odom.pose, self.params.max_setpoint_lead_m)
         self._last_mode = decision.mode
         return StepResult(sp, decision.mode, added, decision)
 
@@ -251,16 +246,6 @@ class Explorer:
         self.anchor = pose
         self._want_keyframe = False
         return True
-
-
-def _within_lead(sp: Setpoint, pose: Pose2, lead_m: float) -> Setpoint:
-    """The setpoint moved along its line from the vehicle to at most ``lead_m`` away."""
-    dx, dy = sp.x_m - pose.x_m, sp.y_m - pose.y_m
-    dist = math.hypot(dx, dy)
-    if dist <= lead_m:
-        return sp
-    k = lead_m / dist
-    return Setpoint(pose.x_m + k * dx, pose.y_m + k * dy, sp.yaw_rad)
 
 
 def _returns_xy(scan: DepthScan) -> FloatArray:

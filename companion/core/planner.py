@@ -151,7 +151,6 @@ class FrontierPlanner:
     _progress_s: float = 0.0
     _leg: _Leg | None = None
     _cooling: dict[FrontierKey, float] = field(default_factory=dict)  # dropped goal -> until when
-    _cooling_keyframes: dict[int, float] = field(default_factory=dict)  # visited in vain -> until when
     _speed_mps: float = 0.0
     _velocity: FloatArray = field(default_factory=lambda: np.zeros(2))
     _live_view: Callable[[], shapely.Geometry] | None = None
@@ -184,7 +183,6 @@ class FrontierPlanner:
         self._speed_mps = float(np.hypot(*self._velocity))
         self._live_view = live_view
         self._cooling = {k: t for k, t in self._cooling.items() if t > stamp_s}
-        self._cooling_keyframes = {k: t for k, t in self._cooling_keyframes.items() if t > stamp_s}
         required = self._required_clearance(view, here)
 
         if self.goal is not None:
@@ -479,10 +477,7 @@ class FrontierPlanner:
         ):
             self.route = self._find_route(local_map, frame_id)
         if self.route is None:
-            hold = Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad)
-            if self._cooling_keyframes:  # not done: a keyframe visited in vain rests a few seconds
-                return Decision(Mode.BACKTRACKING, hold)
-            return Decision(Mode.COMPLETE, hold)
+            return Decision(Mode.COMPLETE, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         route = self.route
         # Progress watchdog: a target keyframe not reached in time (legs blocked one after
         # another, a waypoint never reached) counts a failed try for its frontiers.
@@ -502,9 +497,7 @@ class FrontierPlanner:
                 self.route = None
                 self._commit(local_map, frame_id, best, here, stamp_s)
                 return self._fly(vehicle, best.aim_xy, best.look_rad, Mode.EXPLORING, best.key)
-            # One failed try per visit: the next route must not lead straight back here.
             self._fail_keyframe(local_map, frame_id)
-            self._cooling_keyframes[frame_id] = stamp_s + self.params.blocked_cooldown_s
             self.route = None
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # Skip ahead to the farthest route keyframe in view that a straight path reaches.
@@ -584,14 +577,10 @@ class FrontierPlanner:
         return float(np.hypot(*(point - here))) <= radius_m and self._speed_mps <= self.params.corner_speed_mps
 
     def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int) -> None:
-        """A failed try for each of the keyframe's frontiers."""
         for i in targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m):
             self._failed(FrontierKey(keyframe_id, int(i)))
 
     def _has_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
-        """Open frontiers not set aside, at a keyframe not just visited in vain."""
-        if keyframe_id in self._cooling_keyframes:
-            return False
         kf = local_map.keyframes[keyframe_id]
         idx = targetable_indices(kf, self.params.min_frontier_size_m)
         return any(FrontierKey(keyframe_id, int(i)) not in self.set_aside for i in idx)
