@@ -254,7 +254,6 @@ class Service:
     # -- report ---------------------------------------------------------------------------------
 
     def report(self) -> dict[str, Any]:
-        m = self.explorer.map
         steps = np.asarray(self.step_ms or [0.0])
         elapsed = 0.0
         if self._odom is not None and self._first_odom is not None:
@@ -271,11 +270,7 @@ class Service:
             "termination": self.termination,
             "state": self.health.state.value,
             "reason": self.health.reason,
-            "keyframes": len(m),
-            "loop_closures": m.loop_closures,
-            "frontiers_left": m.open_frontier_count(),
-            "frontiers_set_aside": len(self.explorer.planner.unreachable(self.explorer.map)),
-            "frontiers_closed_on_sight": self.explorer.planner.closed_on_sight,
+            **self.explorer.map_counts(),
             "inputs": {
                 "odometry": self.health.odometry_count,
                 "scans": self.health.scan_count,

@@ -51,15 +51,7 @@ class PolygonPolicy:
         return None if result.mode is Mode.COMPLETE else result.setpoint
 
     def summary(self) -> dict[str, Any]:
-        m = self.explorer.map
-        planner = self.explorer.planner
-        return {
-            "keyframes": len(m),
-            "loop_closures": m.loop_closures,
-            "frontiers_left": m.open_frontier_count(),
-            "frontiers_set_aside": len(planner.unreachable(m)),
-            "frontiers_closed_on_sight": planner.closed_on_sight,
-        }
+        return dict(self.explorer.map_counts())
 
 
 class GridPolicy:

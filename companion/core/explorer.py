@@ -156,6 +156,16 @@ class Explorer:
         self._last_mode = decision.mode
         return StepResult(sp, decision.mode, added, decision)
 
+    def map_counts(self) -> dict[str, int]:
+        """The map and frontier figures every report carries (the simulator's and the service's)."""
+        return {
+            "keyframes": len(self.map),
+            "loop_closures": self.map.loop_closures,
+            "frontiers_left": self.map.open_frontier_count(),
+            "frontiers_set_aside": len(self.planner.unreachable(self.map)),
+            "frontiers_closed_on_sight": self.planner.closed_on_sight,
+        }
+
     def add_loop_closure(self, closure: LoopClosure) -> None:
         """Queue a SLAM loop closure; it joins the graph once odometry covers both its moments."""
         self._pending_closures.append(closure)
