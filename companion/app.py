@@ -16,6 +16,7 @@ from typing import Any
 from companion.config import Config
 from companion.core.explorer import ExplorerParams
 from companion.core.local_map import MapParams
+from companion.core.setpoint_lead import LeadParams
 from companion.errors import CompanionError
 from companion.links.base import FlightControl, InputSource
 from companion.service import Service, ServiceSettings
@@ -164,5 +165,9 @@ def _publisher(outputs: Any, drops: Any) -> Any:
 
 def explorer_params(config: Config) -> ExplorerParams:
     """The map and planner tuning a config implies: without a loop-closure source, new views are
-    closed against every view along the pose graph (see MapParams.close_new_through_graph)."""
-    return ExplorerParams(map=MapParams(close_new_through_graph=config.inputs.loop_closure == "none"))
+    closed against every view along the pose graph (see MapParams.close_new_through_graph); the
+    setpoint lead bounds the speed."""
+    return ExplorerParams(
+        map=MapParams(close_new_through_graph=config.inputs.loop_closure == "none"),
+        lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m),
+    )

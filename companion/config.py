@@ -27,6 +27,9 @@ class VehicleConfig(_Strict):
     control: Literal["pymavlink", "mavsdk"] = "pymavlink"
     mavsdk_url: str | None = Field(None, description="MAVSDK connection URL when control is mavsdk")
     setpoint_rate_hz: float = Field(20.0, gt=2.0, le=1000.0)
+    max_setpoint_lead_m: float = Field(
+        1.5, gt=0.2, le=10.0, description="setpoints stay this close to the vehicle: it bounds the autopilot's speed"
+    )
     input_rate_hz: float = Field(10.0, gt=0.0, le=200.0)
     altitude_m: float = Field(1.5, gt=0.2, le=50.0)
     arm_timeout_s: float = Field(90.0, gt=0.0)

@@ -13,6 +13,7 @@ from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.geometry import Pose2
 from companion.core.local_map import MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry
+from companion.core.setpoint_lead import LeadParams
 from sitl.runner import run_exploration
 from sitl.simulation import SimParams
 from sitl.slam import SlamParams
@@ -57,7 +58,22 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     config = Config.model_validate(
         {"vehicle": {"mavlink": "udpin:127.0.0.1:14540"}, "inputs": {"loop_closure": source}}
     )
-    assert explorer_params(config).map.close_new_through_graph is along_graph
+    params = explorer_params(config)
+    assert params.map.close_new_through_graph is along_graph
+    assert params.lead.max_lead_m == config.vehicle.max_setpoint_lead_m
+
+
+def test_setpoints_never_lead_the_vehicle_by_more_than_the_configured_distance():
+    """A frontier 4 m ahead must not become a 4 m setpoint: an autopilot would fly it at cruise speed."""
+    ex = Explorer(ExplorerParams(lead=LeadParams(max_lead_m=1.0)))
+    ranges = np.full(64, 5.0)  # open space ahead: frontiers at 5 m
+    leads = []
+    for i in range(30):
+        t = 0.1 * i
+        pose = Pose2(0.05 * i, 0.0, 0.0)
+        sp = ex.step(Odometry(t, pose), DepthScan(t, BEARINGS, ranges, 5.0)).setpoint
+        leads.append(math.hypot(sp.x_m - pose.x_m, sp.y_m - pose.y_m))
+    assert max(leads) == pytest.approx(1.0, abs=1e-6)  # it did want to go farther, and was held
 
 
 def test_explorer_turns_a_loop_closure_into_a_graph_edge():

@@ -48,6 +48,29 @@ def test_occlusion_inserts_frontier_on_the_far_ray_at_the_near_range():
     assert not poly.shape.contains(shapely.Point(shadow))
 
 
+@pytest.mark.parametrize("near_first", [True, False])
+def test_a_long_shadow_edge_carries_frontier_vertices_along_its_length(near_first):
+    """Each part of a shadow edge must stay open on its own: the vertex by the occluder is the
+    first a view round the corner closes, while the far part may still be unseen."""
+    r = np.full(64, 4.6)
+    if near_first:
+        r[:30] = 0.8  # near object on the right: the range rises across the jump
+    else:
+        r[30:] = 0.8  # near object on the left: the range falls across the jump
+    params = PolygonParams(occlusion_frontier_spacing_m=1.0, side_frontier_spacing_m=0.0)
+    poly = scan_to_polygon(scan(r), params)
+    far_ray = BEARINGS[30] if near_first else BEARINGS[29]
+    on_edge = [
+        float(np.hypot(*v))
+        for v, k in zip(poly.vertices_xy, poly.kinds, strict=True)
+        if k == VertexKind.FRONTIER and np.isclose(math.atan2(v[1], v[0]), far_ray) and np.hypot(*v) < 4.5
+    ]
+    assert sorted(on_edge) == pytest.approx([0.8, 1.8, 2.8, 3.8])
+    # They lie on the edge: the free space is the same as with the single vertex.
+    single = scan_to_polygon(scan(r), PolygonParams(occlusion_frontier_spacing_m=0.0, side_frontier_spacing_m=0.0))
+    assert poly.shape.is_valid and math.isclose(poly.shape.area, single.shape.area, rel_tol=1e-6)
+
+
 def test_invalid_returns_never_become_walls_at_zero():
     r = np.full(64, 3.0)
     r[10] = np.nan

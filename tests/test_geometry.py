@@ -1,10 +1,11 @@
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.core.geometry import Pose2, wrap_angle
+from companion.core.geometry import Pose2, free_travel_m, wrap_angle
 
 coord = st.floats(-100, 100, allow_nan=False)
 angle = st.floats(-10, 10, allow_nan=False)
@@ -37,3 +38,16 @@ def test_inverse_undoes_apply(a):
     pts = np.array([[0.0, 0.0], [1.5, -2.0], [10.0, 3.0]])
     back = a.inverse().apply(a.apply(pts))
     assert np.allclose(back, pts, atol=1e-6)
+
+
+def test_free_travel_stops_where_the_disc_would_touch_a_point():
+    pts = np.array([[2.0, 0.0], [1.0, 0.5], [-1.0, 0.0]])
+    # Straight at the point 2 m ahead: the disc touches it after 2 - r.
+    assert free_travel_m(pts[:1], (1.0, 0.0), 0.3) == pytest.approx(1.7)
+    # A point 0.5 m to the side is passed by a 0.3 m disc, touched by a 0.6 m one.
+    assert free_travel_m(pts[1:2], (1.0, 0.0), 0.3) == math.inf
+    assert free_travel_m(pts[1:2], (1.0, 0.0), 0.6) == pytest.approx(1.0 - math.sqrt(0.36 - 0.25))
+    # Behind does not count; the direction's length does not matter.
+    assert free_travel_m(pts[2:], (1.0, 0.0), 0.3) == math.inf
+    assert free_travel_m(pts, (5.0, 0.0), 0.3) == pytest.approx(1.7)
+    assert free_travel_m(pts, (0.0, 0.0), 0.3) == math.inf

@@ -23,6 +23,7 @@ from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
+from companion.core.setpoint_lead import LeadParams, limit_lead
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,6 +36,7 @@ class ExplorerParams:
     backtrack_keyframe_distance_m: float = 3.0  # fewer new views while flying through known space
     loop_closure_max_gap_s: float = 5.0  # a loop closure needs a keyframe this close in time
     velocity_window_s: float = 0.2  # odometry differenced over this long for the vehicle's velocity
+    lead: LeadParams = field(default_factory=LeadParams)  # how far setpoints may lead the vehicle
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,19 +142,16 @@ class Explorer:
 
         velocity = self._velocity_in_frame(odom)
         decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view)
+        t = decision.target  # in the current keyframe's frame, before any relocalisation
+        x, y = self.anchor.apply_point(t.x_m, t.y_m)
+        sp = Setpoint(x, y, wrap_angle(t.yaw_rad + self.anchor.yaw_rad))
         if decision.relocalize_to is not None and decision.relocalize_to != self.current_id:
             rel = self.map.pose_in(self.current_id, decision.relocalize_to)
             self.anchor = self.anchor.compose(rel)
             self.current_id = decision.relocalize_to
         if decision.want_keyframe:
             self._want_keyframe = True
-        t = decision.target
-        if decision.relocalize_to is not None:
-            # The target is the reached keyframe's own origin: the new anchor.
-            sp = Setpoint(self.anchor.x_m, self.anchor.y_m, self.anchor.yaw_rad)
-        else:
-            x, y = self.anchor.apply_point(t.x_m, t.y_m)
-            sp = Setpoint(x, y, wrap_angle(t.yaw_rad + self.anchor.yaw_rad))
+        sp = self._within_lead(sp, odom.pose, velocity)
         self._last_mode = decision.mode
         return StepResult(sp, decision.mode, added, decision)
 
@@ -224,6 +223,17 @@ class Explorer:
         vx, vy = (odom.pose.x_m - before.x_m) / dt, (odom.pose.y_m - before.y_m) / dt
         c, s = math.cos(self.anchor.yaw_rad), math.sin(self.anchor.yaw_rad)
         return (c * vx + s * vy, -s * vx + c * vy)
+
+    def _within_lead(self, sp: Setpoint, pose: Pose2, velocity_in_frame: tuple[float, float]) -> Setpoint:
+        """The setpoint limited to the lead (see :mod:`setpoint_lead`), all in the odometry frame."""
+        if self._live is None:
+            return limit_lead(sp, pose, (0.0, 0.0), np.zeros((0, 2)), math.inf, self.params.lead)
+        pose_at_scan, returns, _ = self._live
+        velocity = self.anchor.rotate(np.array([velocity_in_frame]))[0]
+        clearance = self.planner.clearance_now_m
+        return limit_lead(
+            sp, pose, (float(velocity[0]), float(velocity[1])), pose_at_scan.apply(returns), clearance, self.params.lead
+        )
 
     def _keyframe_near(self, stamp_s: float, gap_s: float) -> int | None:
         best, best_gap = None, gap_s

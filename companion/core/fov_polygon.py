@@ -41,6 +41,9 @@ class PolygonParams:
     """Tuning for :func:`scan_to_polygon`."""
 
     occlusion_threshold_m: float = 0.5
+    # An occlusion's shadow edge runs along the farther ray; frontier vertices along it at this
+    # spacing keep the whole edge open until views cover each part, not just its near end.
+    occlusion_frontier_spacing_m: float = 1.0
     min_vertex_spacing_m: float = 0.25
     frontier_range_tolerance_m: float = 0.02
     # The FOV's two side edges border space nothing has seen; frontier vertices placed along them
@@ -108,12 +111,14 @@ def _classify_ranges(scan: DepthScan, tol_m: float) -> tuple[FloatArray, NDArray
 
 
 def _insert_occlusions(
-    bearings: FloatArray, ranges: FloatArray, frontier: NDArray[np.bool_], threshold_m: float
+    bearings: FloatArray, ranges: FloatArray, frontier: NDArray[np.bool_], threshold_m: float, spacing_m: float
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Insert a frontier vertex at each range jump (thesis eq. 2.4).
+    """Insert frontier vertices at each range jump (thesis eq. 2.4).
 
-    The vertex sits at the nearer range on the farther ray, so the polygon edge from it runs along
+    The first sits at the nearer range on the farther ray, so the polygon edge from it runs along
     the farther ray (observed free) and the occluded wedge behind the nearer return stays outside.
+    More follow along that edge every ``spacing_m``: a shadow edge metres long must not hinge on
+    one vertex by the occluder, which the next view around the corner closes.
     """
     ranges = ranges.copy()
     frontier = frontier.copy()
@@ -142,11 +147,16 @@ def _insert_occlusions(
         r_out.append(float(ranges[i]))
         f_out.append(bool(frontier[i]))
         if i in jump_set:
-            near = min(ranges[i], ranges[i + 1])
-            far_bearing = bearings[i + 1] if ranges[i] < ranges[i + 1] else bearings[i]
-            b_out.append(float(far_bearing))
-            r_out.append(float(near))
-            f_out.append(True)
+            near, far = min(ranges[i], ranges[i + 1]), max(ranges[i], ranges[i + 1])
+            rising = ranges[i] < ranges[i + 1]
+            far_bearing = bearings[i + 1] if rising else bearings[i]
+            along = [near]
+            if spacing_m > 0.0:
+                along += np.arange(near + spacing_m, far - 0.5 * spacing_m, spacing_m).tolist()
+            for r in along if rising else along[::-1]:
+                b_out.append(float(far_bearing))
+                r_out.append(float(r))
+                f_out.append(True)
     return np.array(b_out), np.array(r_out), np.array(f_out, dtype=bool)
 
 
@@ -184,7 +194,9 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     """Build the field-of-view polygon of ``scan`` in its own (body = keyframe) frame."""
     p = params or PolygonParams()
     ranges, frontier = _classify_ranges(scan, p.frontier_range_tolerance_m)
-    bearings, ranges, frontier = _insert_occlusions(scan.bearings_rad, ranges, frontier, p.occlusion_threshold_m)
+    bearings, ranges, frontier = _insert_occlusions(
+        scan.bearings_rad, ranges, frontier, p.occlusion_threshold_m, p.occlusion_frontier_spacing_m
+    )
     pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
     keep = _subsample(pts, frontier, p.min_vertex_spacing_m)
     pts, frontier = pts[keep], frontier[keep]

@@ -21,8 +21,8 @@ class FrontierKey:
 
 
 def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
-    """For each open frontier vertex, the length of frontier edges in its run of consecutive open
-    frontier vertices (0 for other vertices). Tiny runs are fragments not worth a flight."""
+    """For each open frontier vertex, the length of frontier its run of consecutive open frontier
+    vertices spans (0 for other vertices). Tiny runs are fragments not worth a flight."""
     n = kinds.size
     is_open = kinds == VertexKind.FRONTIER
     sizes = np.zeros(n)
@@ -43,8 +43,10 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
         while i < n and is_open[(start + i) % n]:
             members.append((start + i) % n)
             i += 1
-        # Edges into the run, inside it, and out of it.
-        total = edge_len[(members[0] - 1) % n] + sum(edge_len[m] for m in members)
+        # Edges inside the run, and half of those into and out of it (they end at a vertex
+        # that is not open): a lone open vertex between walls or seen space spans half of each.
+        inside = sum(edge_len[m] for m in members[:-1])
+        total = 0.5 * (edge_len[(members[0] - 1) % n] + edge_len[members[-1]]) + inside
         sizes[members] = total
     return sizes
 

@@ -97,3 +97,18 @@ def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> Floa
     t = np.clip(np.einsum("nmk,nmk->nm", ap, ab) / denom, 0.0, 1.0)
     closest = a + t[..., None] * ab
     return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)
+
+
+def free_travel_m(points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float) -> float:
+    """How far a disc of ``radius_m`` at the origin can move along ``direction_xy`` before it
+    touches one of the points (inf when none lies in its way)."""
+    dx, dy = direction_xy
+    norm = math.hypot(dx, dy)
+    if norm < 1e-9 or points_xy.shape[0] == 0:
+        return math.inf
+    along = (points_xy[:, 0] * dx + points_xy[:, 1] * dy) / norm
+    across = np.abs(points_xy[:, 1] * dx - points_xy[:, 0] * dy) / norm
+    hit = (along > 0.0) & (across < radius_m)
+    if not hit.any():
+        return math.inf
+    return max(0.0, float(np.min(along[hit] - np.sqrt(radius_m**2 - across[hit] ** 2))))

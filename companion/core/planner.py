@@ -132,6 +132,7 @@ class _Leg:
     frame_id: int
     keyframe_id: int
     points: FloatArray
+    ends_short: bool = False  # snapped to free space short of the keyframe (taken near a wall)
 
 
 @dataclass(slots=True)
@@ -145,11 +146,14 @@ class FrontierPlanner:
     set_aside: set[FrontierKey] = field(default_factory=set)
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
+    clearance_now_m: float = math.inf  # the vehicle's distance to the nearest known obstacle, last plan
     _graph_checked: dict[int, int] = field(default_factory=dict)  # keyframe -> map size when checked
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     _progress_target: int | None = None
     _progress_s: float = 0.0
     _leg: _Leg | None = None
+    _tried_in_vain: int | None = None  # keyframe whose frontiers were last tried from it in vain
+    _arrived_at: int | None = None  # route keyframe last arrived at (its origin, or its leg's end)
     _cooling: dict[FrontierKey, float] = field(default_factory=dict)  # dropped goal -> until when
     _speed_mps: float = 0.0
     _velocity: FloatArray = field(default_factory=lambda: np.zeros(2))
@@ -291,6 +295,7 @@ class FrontierPlanner:
         path = None if c.path is None else pose.apply(c.path)
         look = wrap_angle(c.look_rad + pose.yaw_rad)
         self.goal = _Goal(c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path)
+        self._arrived_at = None
 
     def _close_looked_at(self, local_map: LocalMap, frame_id: int, key: FrontierKey) -> None:
         """The vehicle looked at this frontier from its goal, a view was taken there, and it stays
@@ -432,6 +437,7 @@ class FrontierPlanner:
             now = float(shapely.distance(shapely.Point(here), view.obstacles))
         if self._live.shape[0]:
             now = min(now, float(np.min(np.hypot(*(self._live - here).T))))
+        self.clearance_now_m = now
         return min(self.params.clearance_m, 0.9 * now)
 
     def _accessible(self, view: LocalView, start: FloatArray, goal: FloatArray, required: float) -> bool:
@@ -476,6 +482,7 @@ class FrontierPlanner:
             or not self._has_targets(local_map, self.route.target_keyframe)
         ):
             self.route = self._find_route(local_map, frame_id)
+            self._arrived_at = None
         if self.route is None:
             return Decision(Mode.COMPLETE, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         route = self.route
@@ -490,14 +497,17 @@ class FrontierPlanner:
             self._progress_target = None
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # The route ends here: take the target keyframe's own frontiers from its origin, where
-        # its polygon is star-shaped; those still out of reach count a failed try.
-        if route.keyframes == [frame_id] and self._reached(np.zeros(2), here, self.params.waypoint_reached_m):
+        # its polygon is star-shaped (or from where the leg to it ended, when the origin is too
+        # close to a wall); those still out of reach count a failed try.
+        at_target = self._arrived_at == frame_id or self._reached(np.zeros(2), here, self.params.waypoint_reached_m)
+        if route.keyframes == [frame_id] and at_target:
             best = self._select_local(local_map, frame_id, view, vehicle, here, required, only_keyframe=frame_id)
             if best is not None:
                 self.route = None
                 self._commit(local_map, frame_id, best, here, stamp_s)
                 return self._fly(vehicle, best.aim_xy, best.look_rad, Mode.EXPLORING, best.key)
             self._fail_keyframe(local_map, frame_id)
+            self._tried_in_vain = frame_id
             self.route = None
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # Skip ahead to the farthest route keyframe in view that a straight path reaches.
@@ -534,12 +544,28 @@ class FrontierPlanner:
                     self._fail_keyframe(local_map, route.target_keyframe)
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         del route.keyframes[:skip]
-        if self._reached(wp, here, self.params.waypoint_reached_m):
+        leg = self._leg
+        # A leg snapped short of its keyframe (one taken close to a wall) ends where it ends:
+        # waiting to get nearer would hold the vehicle there until the route times out.
+        leg_flown = (
+            leg is not None
+            and leg.keyframe_id == nxt
+            and leg.ends_short
+            and points.shape[0] == 1
+            and self._reached(points[0], here, self.params.corner_reached_m)
+        )
+        if leg_flown or self._reached(wp, here, self.params.waypoint_reached_m):
             self._progress_s = stamp_s
             self._leg = None
+            self._arrived_at = nxt
             if len(route.keyframes) > 1:
                 route.keyframes.pop(0)
-            return Decision(Mode.BACKTRACKING, Target(pose.x_m, pose.y_m, pose.yaw_rad), relocalize_to=nxt)
+            hold = (
+                Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad)
+                if leg_flown
+                else Target(pose.x_m, pose.y_m, pose.yaw_rad)
+            )
+            return Decision(Mode.BACKTRACKING, hold, relocalize_to=nxt)
         aim = points[0]
         travel = float(np.arctan2(*(aim - here)[::-1]))
         return self._fly(vehicle, aim, travel, Mode.BACKTRACKING, None)
@@ -561,15 +587,22 @@ class FrontierPlanner:
         if leg is not None and leg.keyframe_id == keyframe_id:
             pts = local_map.pose_in(frame_id, leg.frame_id).apply(leg.points)
             pts = self._past_corners(pts, here)
-            self._leg = _Leg(frame_id, keyframe_id, pts)
-            return pts, False
+            # Flown to its end, yet the keyframe is not there (a loop closure moved it since):
+            # plan again from here rather than hold at the end until the route times out.
+            stale_end = (
+                pts.shape[0] == 1 and not leg.ends_short and self._reached(pts[0], here, self.params.corner_reached_m)
+            )
+            if not stale_end:
+                self._leg = _Leg(frame_id, keyframe_id, pts, ends_short=leg.ends_short)
+                return pts, False
         pts = wp[None, :]
         if not self._accessible(view, here, wp, self._leg_required(required)):
             reach = self._reach(view, here)
             path = None if reach is None else reach.path_to(wp, snap=True)
             if path is not None:
                 pts = path
-        self._leg = _Leg(frame_id, keyframe_id, pts)
+        short = float(np.hypot(*(pts[-1] - wp))) > self.params.waypoint_reached_m
+        self._leg = _Leg(frame_id, keyframe_id, pts, ends_short=short)
         return pts, True
 
     def _reached(self, point: FloatArray, here: FloatArray, radius_m: float) -> bool:
@@ -603,6 +636,11 @@ class FrontierPlanner:
         else:
             walk = local_map.graph.walk(frame_id)
             targets = [v.keyframe_id for v in walk if self._has_live_targets(local_map, v.keyframe_id)]
+            # The keyframe just tried in vain from its origin goes last: its next try should come
+            # after the others (a blocked goal's cooldown over), not at once from the same spot.
+            if len(targets) > 1 and self._tried_in_vain in targets:
+                targets.remove(self._tried_in_vain)
+                targets.append(self._tried_in_vain)
         for k in targets:
             try:
                 path = local_map.graph.path(frame_id, k, avoid=self.blocked_legs)

@@ -1,0 +1,56 @@
+"""How far ahead of the vehicle a position setpoint may lie: the companion's speed limit.
+
+An autopilot flies a far position target as fast as its own limits allow (PX4 offboard up to
+MPC_XY_VEL_MAX, 12 m/s by default) and a near one about as fast as its position gain makes of the
+distance, braking to stop on it. So the setpoint is kept within a maximum lead of the vehicle, and
+within the free travel the newest scan shows ahead (towards the setpoint, and along the vehicle's
+motion, which carries it on while it turns): the vehicle comes in slowly enough to stop short of a
+seen obstacle, whatever the planner asks next.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from companion.core.geometry import FloatArray, Pose2, free_travel_m
+from companion.core.messages import Setpoint
+
+
+@dataclass(frozen=True, slots=True)
+class LeadParams:
+    max_lead_m: float = 1.5
+    contact_radius_m: float = 0.3  # the body radius and a little: a return this close is touched
+    stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
+    moving_mps: float = 0.1  # above this speed the motion's own direction is checked too
+
+
+def limit_lead(
+    setpoint: Setpoint,
+    pose: Pose2,
+    velocity_xy: tuple[float, float],
+    returns_xy: FloatArray,
+    clearance_now_m: float,
+    params: LeadParams,
+) -> Setpoint:
+    """The setpoint moved along its line from the vehicle to at most the allowed lead (yaw kept).
+
+    ``velocity_xy`` and ``returns_xy`` (the newest scan's obstacle points) are in the setpoint's
+    frame; ``clearance_now_m`` is how close the vehicle already is to any known obstacle: closer
+    than the contact radius (drift, a tight door) it may move along or away, only not closer still.
+    """
+    dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
+    dist = math.hypot(dx, dy)
+    lead = min(params.max_lead_m, dist)
+    if returns_xy.shape[0]:
+        rel = returns_xy - [pose.x_m, pose.y_m]
+        contact = min(params.contact_radius_m, 0.95 * clearance_now_m)
+        directions = [(dx, dy)]
+        if math.hypot(*velocity_xy) > params.moving_mps:
+            directions.append(velocity_xy)
+        for direction in directions:
+            lead = min(lead, max(0.0, free_travel_m(rel, direction, contact) - params.stop_margin_m))
+    if lead >= dist:
+        return setpoint
+    k = lead / dist
+    return Setpoint(pose.x_m + k * dx, pose.y_m + k * dy, setpoint.yaw_rad)

@@ -1,0 +1,35 @@
+"""Frontier runs: which open frontier vertices are worth a flight."""
+
+import numpy as np
+import pytest
+
+from companion.core.fov_polygon import VertexKind
+from companion.core.frontiers import run_sizes_m
+
+F, W, FREE = VertexKind.FRONTIER, VertexKind.OBSTACLE, VertexKind.FREE  # W: a wall (obstacle)
+
+
+def ring(n: int, spacing_m: float = 0.25) -> np.ndarray:
+    """n vertices along a line ``spacing_m`` apart, closed back to the first (a long last edge)."""
+    return np.column_stack((np.arange(n) * spacing_m, np.zeros(n)))
+
+
+def test_a_lone_open_vertex_spans_half_of_each_edge_beside_it():
+    """A single open vertex between a wall and seen space is a fragment about one vertex wide,
+    not the two full edges beside it (it would otherwise be worth a flight)."""
+    kinds = np.array([W, W, F, FREE, FREE, W], dtype=np.int8)
+    sizes = run_sizes_m(kinds, ring(6))
+    assert sizes[2] == pytest.approx(0.25)
+    assert np.all(sizes[kinds != F] == 0.0)
+
+
+def test_a_run_spans_its_inner_edges_and_half_of_its_end_edges():
+    kinds = np.array([W, F, F, F, W, W], dtype=np.int8)
+    sizes = run_sizes_m(kinds, ring(6))
+    assert np.allclose(sizes[1:4], 0.125 + 0.5 + 0.125)
+
+
+def test_an_all_open_ring_spans_its_perimeter():
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    sizes = run_sizes_m(np.full(4, F, dtype=np.int8), square)
+    assert np.allclose(sizes, 4.0)
