@@ -7,16 +7,18 @@ import asyncio
 import json
 import math
 import socket
+import subprocess
 import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from companion.core.messages import Setpoint
 from companion.links.base import CommandRefused
 from companion.links.mavlink_link import PX4_MAIN_OFFBOARD, MavlinkLink, MavlinkSettings
 from sitl.autopilot import px4_custom_mode
-from tests.sitl_process import free_port, run_companion, sitl_vehicle
+from tests.sitl_process import ROOT, free_port, run_companion, sitl_vehicle
 
 SPEEDUP = 10.0
 # Whole explorations run slower: a millisecond of link latency is SPEEDUP times longer in vehicle
@@ -78,15 +80,14 @@ def test_px4_falls_back_to_hold_when_the_companion_stops_streaming(tmp_path: Pat
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
-def test_companion_run_explores_room_over_mavlink(tmp_path: Path, autopilot: str) -> None:
-    """Odometry and scans over MAVLink (ODOMETRY on PX4; LOCAL_POSITION_NED + ATTITUDE on
-    ArduPilot, which has no ODOMETRY), loop closures from the SLAM back end over Zenoh."""
+def test_companion_run_explores_room_over_mavlink_with_zenoh_loop_closures(tmp_path: Path) -> None:
+    """PX4: odometry and scans over MAVLink (ODOMETRY, OBSTACLE_DISTANCE), loop closures from the
+    SLAM back end over Zenoh."""
     sitl_report = tmp_path / "sitl.json"
     report = tmp_path / "companion.json"
     zenoh_port = free_port(socket.SOCK_STREAM)
     extra = ("--zenoh", f"tcp/127.0.0.1:{zenoh_port}")
-    with sitl_vehicle(autopilot, sitl_report, EXPLORE_SPEEDUP, extra=extra) as url:
+    with sitl_vehicle("px4", sitl_report, EXPLORE_SPEEDUP, extra=extra) as url:
         config = tmp_path / "config.yaml"
         config.write_text(
             f"vehicle:\n  mavlink: {url}\n  setpoint_rate_hz: {20 * EXPLORE_SPEEDUP}\n  arm_timeout_s: 30\n"
@@ -97,6 +98,34 @@ def test_companion_run_explores_room_over_mavlink(tmp_path: Path, autopilot: str
         run = run_companion(config, report, 240)
         assert report.exists(), run.stderr[-3000:]
         time.sleep(0.5)
+    result = _explored(sitl_report, report, run)
+    assert result["inputs"]["loop_closures"] > 10
+    assert result["loop_closures"] > 10
+
+
+@pytest.mark.slow
+def test_shipped_ardupilot_config_explores_room_over_mavlink_alone(tmp_path: Path) -> None:
+    """ArduPilot with the shipped config as it is (only the port and the sim-time setpoint rate
+    changed): LOCAL_POSITION_NED + ATTITUDE (no ODOMETRY on ArduPilot) and OBSTACLE_DISTANCE, no
+    loop closures at all, and the exploration still ends by itself at full coverage."""
+    sitl_report = tmp_path / "sitl.json"
+    report = tmp_path / "companion.json"
+    shipped = yaml.safe_load((ROOT / "config/sitl-ardupilot.yaml").read_text())
+    with sitl_vehicle("ardupilot", sitl_report, EXPLORE_SPEEDUP) as url:
+        shipped["vehicle"]["mavlink"] = url
+        shipped["vehicle"]["setpoint_rate_hz"] = 20 * EXPLORE_SPEEDUP
+        config = tmp_path / "config.yaml"
+        config.write_text(yaml.safe_dump(shipped))
+        run = run_companion(config, report, 360)
+        assert report.exists(), run.stderr[-3000:]
+        time.sleep(0.5)
+    result = _explored(sitl_report, report, run)
+    assert result["inputs"]["loop_closures"] == 0 and result["loop_closures"] == 0
+    assert result["exploration_time_s"] < shipped["exploration"]["max_time_s"]
+
+
+def _explored(sitl_report: Path, report: Path, run: subprocess.CompletedProcess[str]) -> dict:  # type: ignore[type-arg]
+    """The companion's report of a whole exploration that went well by the ground truth."""
     truth = json.loads(sitl_report.read_text())
     result = json.loads(report.read_text())
     assert run.returncode == 0, run.stderr[-3000:]
@@ -104,8 +133,7 @@ def test_companion_run_explores_room_over_mavlink(tmp_path: Path, autopilot: str
     assert truth["collisions"] == 0
     assert truth["coverage"] >= 0.99, (truth, result)
     assert not truth["armed"], "the companion must leave the vehicle landed"
-    assert result["inputs"]["loop_closures"] > 10
-    assert result["loop_closures"] > 10
+    return result  # type: ignore[no-any-return]
 
 
 def test_mavsdk_connects_arms_and_flies_an_offboard_setpoint(tmp_path: Path) -> None:
