@@ -542,6 +542,7 @@ class FrontierPlanner:
                 self.route = self._find_route(local_map, frame_id, route.target_keyframe)
                 if self.route is None:
                     self._fail_keyframe(local_map, route.target_keyframe)
+                    self._tried_in_vain = route.target_keyframe
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         del route.keyframes[:skip]
         leg = self._leg
@@ -648,12 +649,13 @@ class FrontierPlanner:
                 continue
             return _Route(path[1:] if len(path) > 1 else path, k)
         if target_id is None and targets:
-            # Frontiers are left but every route to them crosses a leg once seen blocked: those
+            # Frontiers are left but every route to them crosses a leg once seen blocked (on a
+            # pose graph without loop closures every route back shares the first leg): those
             # sightings may have been drift or a passing scan artefact (or taken from a bad spot,
-            # such as a doorway), so forget them, and let the nearest target's frontiers count a
-            # failed try (which bounds how often this can happen without giving up on the rest).
+            # such as a doorway), so forget them and try again. The sighting that blocked the
+            # last route already counted a failed try for its target, which bounds the retries;
+            # counting another here would set a target aside for one sighting.
             self.blocked_legs.clear()
-            self._fail_keyframe(local_map, targets[0])
             return self._find_route(local_map, frame_id)
         return None
 
