@@ -54,10 +54,12 @@ class Keyframe:
     polygon: FovPolygon
     kinds: NDArray[np.int8] = field(init=False)
     radius_m: float = field(init=False)
+    walls: FloatArray = field(init=False)  # the polygon's obstacle edges (M, 2, 2), computed once
 
     def __post_init__(self) -> None:
         self.kinds = self.polygon.kinds.copy()
         self.radius_m = float(np.max(np.linalg.norm(self.polygon.vertices_xy, axis=1)))
+        self.walls = self.polygon.obstacle_segments()
 
     def open_frontier_indices(self) -> NDArray[np.intp]:
         return np.flatnonzero(self.kinds == VertexKind.FRONTIER)
@@ -147,9 +149,11 @@ class LocalMap:
         shapes = [_moved(self.keyframes[k].polygon.shape, p) for k, p in poses.items()]
         # Rounding in the move can make a near-degenerate ring self-touch; repair before union.
         shapes = [s if s.is_valid else shapely.make_valid(s) for s in shapes]
-        grown = shapely.union_all(shapes, grid_size=1e-3)  # snap rounding: robust unions
+        # Snap rounding: robust, and without it near-coincident edges of overlapping views leave
+        # sliver holes that fail path checks (tried: twice as fast, office 8 % slower to explore).
+        grown = shapely.union_all(shapes, grid_size=1e-3)
         shapely.prepare(grown)
-        segs = [p.apply(self.keyframes[k].polygon.obstacle_segments().reshape(-1, 2)) for k, p in poses.items()]
+        segs = [p.apply(self.keyframes[k].walls.reshape(-1, 2)) for k, p in poses.items()]
         obstacles = _segments_geometry(np.vstack(segs).reshape(-1, 2, 2))
         shapely.prepare(obstacles)
         view = LocalView(keyframe_id, poses, grown, obstacles)
@@ -256,26 +260,36 @@ class LocalMap:
 
     def _close_at_walls(self, kf_id: int, nbrs: dict[int, Pose2]) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
-        sensor's limit leaves such vertices, and nothing beyond them can ever be seen)."""
+        sensor's limit leaves such vertices, and nothing beyond them can ever be seen). All in
+        the new keyframe's frame: its open vertices against every neighbour's walls at once, and
+        every neighbour's open vertices against its own walls."""
         kf = self.keyframes[kf_id]
         snap = self.params.wall_snap_m
         own = kf.open_frontier_indices()
-        own_xy = kf.polygon.vertices_xy[own]
-        own_closed = np.zeros(own.size, dtype=bool)
-        for other_id, pose in nbrs.items():
-            other = self.keyframes[other_id]
-            if own.size:
-                own_closed |= self._near_walls(other, pose.inverse().apply(own_xy), snap)
-            theirs = other.open_frontier_indices()
-            if theirs.size:
-                pts = pose.apply(other.polygon.vertices_xy[theirs])
-                other.kinds[theirs[self._near_walls(kf, pts, snap)]] = VertexKind.FREE
-        kf.kinds[own[own_closed]] = VertexKind.FREE
+        if own.size and nbrs:
+            segs = [pose.apply(self.keyframes[k].walls.reshape(-1, 2)) for k, pose in nbrs.items()]
+            walls = np.vstack(segs).reshape(-1, 2, 2)
+            kf.kinds[own[_near(kf.polygon.vertices_xy[own], walls, snap)]] = VertexKind.FREE
+        own_walls = kf.walls
+        if own_walls.shape[0] == 0:
+            return
+        theirs = [(self.keyframes[k], pose) for k, pose in nbrs.items()]
+        idx = [other.open_frontier_indices() for other, _ in theirs]
+        if not any(i.size for i in idx):
+            return
+        pts = np.vstack(
+            [pose.apply(other.polygon.vertices_xy[i]) for (other, pose), i in zip(theirs, idx, strict=True)]
+        )
+        near = _near(pts, own_walls, snap)
+        start = 0
+        for (other, _), i in zip(theirs, idx, strict=True):
+            other.kinds[i[near[start : start + i.size]]] = VertexKind.FREE
+            start += i.size
 
-    @staticmethod
-    def _near_walls(kf: Keyframe, points_xy: FloatArray, snap_m: float) -> NDArray[np.bool_]:
-        segs = kf.polygon.obstacle_segments()
-        if segs.shape[0] == 0 or points_xy.shape[0] == 0:
-            return np.zeros(points_xy.shape[0], dtype=bool)
-        near: NDArray[np.bool_] = point_segment_distances(points_xy, segs).min(axis=1) < snap_m
-        return near
+
+def _near(points_xy: FloatArray, segments: FloatArray, snap_m: float) -> NDArray[np.bool_]:
+    """Which points lie within ``snap_m`` of any of the segments (M, 2, 2)."""
+    if segments.shape[0] == 0 or points_xy.shape[0] == 0:
+        return np.zeros(points_xy.shape[0], dtype=bool)
+    near: NDArray[np.bool_] = point_segment_distances(points_xy, segments).min(axis=1) < snap_m
+    return near

@@ -633,22 +633,21 @@ class FrontierPlanner:
         """Fewest-hop route to ``target_id`` (default: the nearest keyframe with open frontiers)
         that avoids the legs seen blocked; None when there is none."""
         if target_id is not None:
-            targets = [target_id]
-        else:
-            walk = local_map.graph.walk(frame_id)
-            targets = [v.keyframe_id for v in walk if self._has_live_targets(local_map, v.keyframe_id)]
-            # The keyframe just tried in vain from its origin goes last: its next try should come
-            # after the others (a blocked goal's cooldown over), not at once from the same spot.
-            if len(targets) > 1 and self._tried_in_vain in targets:
-                targets.remove(self._tried_in_vain)
-                targets.append(self._tried_in_vain)
+            return self._route_to(local_map, frame_id, target_id)
+        # Every keyframe with open frontiers is checked through the graph (once per map size),
+        # not only the nearest: a stale frontier closed now is a flight saved later.
+        walk = local_map.graph.walk(frame_id)
+        targets = [v.keyframe_id for v in walk if self._has_live_targets(local_map, v.keyframe_id)]
+        # The keyframe just tried in vain from its origin goes last: its next try should come
+        # after the others (a blocked goal's cooldown over), not at once from the same spot.
+        if len(targets) > 1 and self._tried_in_vain in targets:
+            targets.remove(self._tried_in_vain)
+            targets.append(self._tried_in_vain)
         for k in targets:
-            try:
-                path = local_map.graph.path(frame_id, k, avoid=self.blocked_legs)
-            except GraphError:
-                continue
-            return _Route(path[1:] if len(path) > 1 else path, k)
-        if target_id is None and targets:
+            route = self._route_to(local_map, frame_id, k)
+            if route is not None:
+                return route
+        if targets and self.blocked_legs:
             # Frontiers are left but every route to them crosses a leg once seen blocked (on a
             # pose graph without loop closures every route back shares the first leg): those
             # sightings may have been drift or a passing scan artefact (or taken from a bad spot,
@@ -658,6 +657,13 @@ class FrontierPlanner:
             self.blocked_legs.clear()
             return self._find_route(local_map, frame_id)
         return None
+
+    def _route_to(self, local_map: LocalMap, frame_id: int, target_id: int) -> _Route | None:
+        try:
+            path = local_map.graph.path(frame_id, target_id, avoid=self.blocked_legs)
+        except GraphError:
+            return None
+        return _Route(path[1:] if len(path) > 1 else path, target_id)
 
     # -- output ---------------------------------------------------------------------------------
 
