@@ -11,9 +11,12 @@ from sitl.world import load_world
 from tests.conftest import square, write_map
 
 
-def test_shipped_maps_load(tmp_path):
-    for name in ("room", "office", "loop"):
-        w = load_world(f"config/maps/{name}.geojson")
+def test_shipped_maps_load(shipped_maps):
+    paths = sorted(shipped_maps.glob("*.geojson"))
+    assert {p.stem for p in paths} >= {"room", "office", "loop", "warehouse", "lshape"}
+    for path in paths:
+        w = load_world(path)
+        assert w.name == path.stem and w.free.area > 50.0
         assert w.free.contains(__import__("shapely").Point(w.start.x_m, w.start.y_m))
         assert w.walls.shape[1:] == (2, 2)
 
