@@ -387,7 +387,12 @@ class MavlinkVehicle:
             )
         elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
             sensors = 0x3FFFFFFF & (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL)
-            link.mav.sys_status_send(sensors, sensors, sensors, 200, 16000, -1, 90, 0, 0, 0, 0, 0, 0)
+            health = sensors
+            if self.options.flavour is Flavour.ARDUPILOT:
+                # ArduPilot sets the geofence health bit whenever the fence is not breached, present
+                # or not (ground stations such as MAVProxy announce "fence breach" without it).
+                health |= mavlink.MAV_SYS_STATUS_GEOFENCE
+            link.mav.sys_status_send(sensors, sensors, health, 200, 16000, -1, 90, 0, 0, 0, 0, 0, 0)
         elif msg_id == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             if not ap.armed or ap.landed:
                 landed = mavlink.MAV_LANDED_STATE_ON_GROUND
