@@ -19,6 +19,8 @@ from companion.core.messages import Setpoint
 
 @dataclass(frozen=True, slots=True)
 class LeadParams:
+    """How far setpoints may lead the vehicle; distances in metres."""
+
     max_lead_m: float = 1.5
     contact_radius_m: float = 0.3  # the body radius and a little: a return this close is touched
     stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
