@@ -110,3 +110,12 @@ def test_a_long_chain_needs_the_other_view_to_reach_deeper_beyond_the_frontier()
     m, a = chain_around_a_far_view(2.0)  # two hops: 4 m of assumed drift, deeper than C reaches
     assert m.close_through_graph(a) == 0
     assert np.any(m.keyframes[a].kinds == VertexKind.FRONTIER)
+
+
+def test_closing_through_the_graph_since_a_keyframe_tests_only_the_views_from_it_on():
+    """The planner re-checks a keyframe with only the views added since its last check (no loop
+    closure in between): an older view is not tested again, a newer one is."""
+    m, a = chain_around_a_far_view(0.05)
+    c = len(m) - 1  # C, the view that sees past A's arc
+    assert m.close_through_graph(a, since_id=c + 1) == 0
+    assert m.close_through_graph(a, since_id=c) > 0

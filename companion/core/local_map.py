@@ -173,11 +173,12 @@ class LocalMap:
         kf.kinds[indices[seen]] = VertexKind.FREE
         return seen
 
-    def close_through_graph(self, keyframe_id: int) -> int:
+    def close_through_graph(self, keyframe_id: int, since_id: int = 0) -> int:
         """Eq. 2.15 for a keyframe's open frontiers against every view the pose graph reaches, not
         only its neighbourhood: a view on the far side of a block, joined to this one only by a
         long chain, may have seen beyond them. The space beyond must lie that much deeper inside
-        the other view the more hops the chain has. Returns how many were closed."""
+        the other view the more hops the chain has. Only views from ``since_id`` on are tested
+        (the caller knows the older ones were, along the same paths). Returns how many closed."""
         kf = self.keyframes[keyframe_id]
         idx = kf.open_frontier_indices()
         if idx.size == 0:
@@ -189,7 +190,7 @@ class LocalMap:
             if visit.hops > p.chain_max_hops:
                 break
             k, pose = visit.keyframe_id, visit.pose_in_start
-            if k == keyframe_id or k in nbrs:
+            if k < since_id or k == keyframe_id or k in nbrs:
                 continue
             other = self.keyframes[k]
             if math.hypot(pose.x_m, pose.y_m) > kf.radius_m + other.radius_m:

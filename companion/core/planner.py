@@ -147,7 +147,8 @@ class FrontierPlanner:
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
     clearance_now_m: float = math.inf  # the vehicle's distance to the nearest known obstacle, last plan
-    _graph_checked: dict[int, int] = field(default_factory=dict)  # keyframe -> map size when checked
+    # keyframe -> (map size, loop closures) when its frontiers were last closed through the graph
+    _graph_checked: dict[int, tuple[int, int]] = field(default_factory=dict)
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     _progress_target: int | None = None
     _progress_s: float = 0.0
@@ -624,9 +625,14 @@ class FrontierPlanner:
         per keyframe and map size: a stale frontier costs a look, not a flight)."""
         if not self._has_targets(local_map, keyframe_id):
             return False
-        if self._graph_checked.get(keyframe_id) != len(local_map):
-            self._graph_checked[keyframe_id] = len(local_map)
-            local_map.close_through_graph(keyframe_id)
+        now = (len(local_map), local_map.loop_closures)
+        before = self._graph_checked.get(keyframe_id)
+        if before != now:
+            self._graph_checked[keyframe_id] = now
+            # With no loop closure since the last check, only the views added since can close
+            # anything: a new keyframe hangs off the graph by one edge and moves no old path.
+            since = before[0] if before is not None and before[1] == now[1] else 0
+            local_map.close_through_graph(keyframe_id, since_id=since)
         return self._has_targets(local_map, keyframe_id)
 
     def _find_route(self, local_map: LocalMap, frame_id: int, target_id: int | None = None) -> _Route | None:
