@@ -226,14 +226,11 @@ class Explorer:
 
     def _within_lead(self, sp: Setpoint, pose: Pose2, velocity_in_frame: tuple[float, float]) -> Setpoint:
         """The setpoint limited to the lead (see :mod:`setpoint_lead`), all in the odometry frame."""
-        if self._live is None:
-            return limit_lead(sp, pose, (0.0, 0.0), np.zeros((0, 2)), math.inf, self.params.lead)
-        pose_at_scan, returns, _ = self._live
-        velocity = self.anchor.rotate(np.array([velocity_in_frame]))[0]
+        returns = np.zeros((0, 2)) if self._live is None else self._live[0].apply(self._live[1])
+        vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
+        body_radius_m = self.params.planner.body_radius_m
         clearance = self.planner.clearance_now_m
-        return limit_lead(
-            sp, pose, (float(velocity[0]), float(velocity[1])), pose_at_scan.apply(returns), clearance, self.params.lead
-        )
+        return limit_lead(sp, pose, (float(vx), float(vy)), returns, clearance, body_radius_m, self.params.lead)
 
     def _keyframe_near(self, stamp_s: float, gap_s: float) -> int | None:
         best, best_gap = None, gap_s

@@ -224,12 +224,12 @@ class Reach:
         nearest free cell within ``snap_m`` instead (e.g. a keyframe taken close to a wall)."""
         g = self.grid
         reached = self.steps != _UNREACHED
+        gi, gj = (int(v) for v in g._cells(np.asarray(goal_xy))[0])
         if snap:
             goal_cell = g._snap(goal_xy, reached)
         else:
-            i, j = (int(v) for v in g._cells(np.asarray(goal_xy))[0])
-            inside = 0 <= i < reached.shape[0] and 0 <= j < reached.shape[1]
-            goal_cell = (i, j) if inside and reached[i, j] else None
+            inside = 0 <= gi < reached.shape[0] and 0 <= gj < reached.shape[1]
+            goal_cell = (gi, gj) if inside and reached[gi, gj] else None
         if goal_cell is None:
             return None
         cells = [goal_cell]
@@ -248,7 +248,7 @@ class Reach:
             cells.append(best)
         cells.reverse()
         pts = [g.cell_centre(a, b) for a, b in cells]
-        if cells[-1] == tuple(int(v) for v in g._cells(np.asarray(goal_xy))[0]):
+        if cells[-1] == (gi, gj):
             pts[-1] = np.asarray(goal_xy, dtype=np.float64)
         return self._centre(self._shorten(pts))
 

@@ -22,7 +22,7 @@ class LeadParams:
     """How far setpoints may lead the vehicle; distances in metres."""
 
     max_lead_m: float = 1.5
-    contact_radius_m: float = 0.3  # the body radius and a little: a return this close is touched
+    contact_margin_m: float = 0.05  # a return this close to the body (its radius) counts as touched
     stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
     moving_mps: float = 0.1  # above this speed the motion's own direction is checked too
 
@@ -33,20 +33,22 @@ def limit_lead(
     velocity_xy: tuple[float, float],
     returns_xy: FloatArray,
     clearance_now_m: float,
+    body_radius_m: float,
     params: LeadParams,
 ) -> Setpoint:
     """The setpoint moved along its line from the vehicle to at most the allowed lead (yaw kept).
 
     ``velocity_xy`` and ``returns_xy`` (the newest scan's obstacle points) are in the setpoint's
     frame; ``clearance_now_m`` is how close the vehicle already is to any known obstacle: closer
-    than the contact radius (drift, a tight door) it may move along or away, only not closer still.
+    than the body radius and contact margin (drift, a tight door) it may move along or away, only
+    not closer still.
     """
     dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
     dist = math.hypot(dx, dy)
     lead = min(params.max_lead_m, dist)
     if returns_xy.shape[0]:
         rel = returns_xy - [pose.x_m, pose.y_m]
-        contact = min(params.contact_radius_m, 0.95 * clearance_now_m)
+        contact = min(body_radius_m + params.contact_margin_m, 0.95 * clearance_now_m)
         directions = [(dx, dy)]
         if math.hypot(*velocity_xy) > params.moving_mps:
             directions.append(velocity_xy)
