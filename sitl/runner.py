@@ -74,6 +74,7 @@ class GridPolicy:
             "frontiers_left": int(self.explorer.frontier_cells().sum()),
             "frontiers_set_aside": 0,
             "frontiers_closed_on_sight": 0,
+            "frontiers_closed_on_surface": 0,
         }
 
 

@@ -10,9 +10,12 @@ from companion.app import explorer_params
 from companion.cli import main
 from companion.config import Config
 from companion.core.explorer import Explorer, ExplorerParams
+from companion.core.fov_polygon import PolygonParams, VertexKind
 from companion.core.geometry import Pose2
 from companion.core.local_map import MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry
+from companion.core.planner import Mode, PlannerParams
+from companion.core.pose_graph import EdgeType
 from companion.core.setpoint_lead import LeadParams
 from sitl.runner import run_exploration
 from sitl.simulation import SimParams
@@ -43,7 +46,7 @@ def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
     lets the room end (not run to the time limit) at full coverage."""
     base = SimParams()
     no_slam = SimParams(base.sensor, base.vehicle, base.drift, SlamParams(enabled=False), base.physics_rate_hz)
-    params = ExplorerParams(map=MapParams(close_new_through_graph=True))
+    params = ExplorerParams(map=MapParams(close_new_through_graph=True), planner=PlannerParams(close_on_surface=False))
     world = load_world(shipped_maps / "room.geojson")
     r = run_exploration(world, "polygon", seed=1, max_time_s=900, sim_params=no_slam, explorer_params=params).report
     assert r["loop_closures"] == 0
@@ -60,6 +63,7 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     )
     params = explorer_params(config)
     assert params.map.close_new_through_graph is along_graph
+    assert params.planner.close_on_surface is not along_graph
     assert params.lead.max_lead_m == config.vehicle.max_setpoint_lead_m
 
 
@@ -74,6 +78,32 @@ def test_setpoints_never_lead_the_vehicle_by_more_than_the_configured_distance()
         sp = ex.step(Odometry(t, pose), DepthScan(t, BEARINGS, ranges, 5.0)).setpoint
         leads.append(math.hypot(sp.x_m - pose.x_m, sp.y_m - pose.y_m))
     assert max(leads) == pytest.approx(1.0, abs=1e-6)  # it did want to go farther, and was held
+
+
+def test_a_frontier_the_newest_scan_sees_as_wall_is_closed_without_flying_to_it():
+    """A wall exactly at the sensor's range: the first view's arc touches it but cannot tell, and
+    the goal is the arc's middle (straight ahead). From 0.9 m closer (no new keyframe yet) the
+    scan returns from the wall right at the middle vertices: they are closed and the goal moves
+    on; the arc's ends, beside the wall's unseen part, stay open."""
+    wall_x = 5.0
+    ex = Explorer(ExplorerParams(polygon=PolygonParams(side_frontier_spacing_m=0.0)))  # the arc only
+    first = DepthScan(0.0, BEARINGS, np.minimum(wall_x / np.cos(BEARINGS), 5.0), 5.0)
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), first)
+    kf = ex.map.keyframes[0]
+    xy = kf.polygon.vertices_xy
+    middle = np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (xy[:, 0] > wall_x - 0.05))
+    ends = np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (np.abs(xy[:, 1]) > 3.0))
+    assert middle.size >= 1 and ends.size >= 1
+    assert ex.planner.goal is not None and ex.planner.goal.key.index in middle.tolist()
+    closer = DepthScan(0.1, BEARINGS, np.minimum((wall_x - 0.9) / np.cos(BEARINGS), 5.0), 5.0)
+    result = ex.step(Odometry(0.1, Pose2(0.9, 0.0, 0.0)), closer)
+    assert len(ex.map) == 1  # no new view: the scan alone closed them
+    assert np.all(kf.kinds[middle] == VertexKind.FREE)
+    assert np.all(kf.kinds[ends] == VertexKind.FRONTIER)
+    assert ex.planner.closed_on_surface >= middle.size
+    goal = ex.planner.goal
+    assert goal is not None and goal.key.index not in middle.tolist()
+    assert result.mode is Mode.EXPLORING
 
 
 def test_explorer_turns_a_loop_closure_into_a_graph_edge():
@@ -92,6 +122,28 @@ def test_explorer_turns_a_loop_closure_into_a_graph_edge():
     assert ex.map.loop_closures == 1
     ex.step(Odometry(6.0, Pose2(7.2, 0.0, 0.0)), scan(6.0))
     assert ex.map.loop_closures == 2
+
+
+def test_a_loop_closure_joins_the_keyframe_whose_view_holds_the_moment_not_merely_the_nearest_in_time():
+    """The vehicle flies east, then turns north at x = 3.6 m. A moment just before the turn lies
+    behind the north-facing keyframe's view (which is nearer in time) but inside the east-facing
+    keyframe's view: the closure's edge must join the keyframe that saw that place."""
+    ex = Explorer()
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    poses = [(0.0, Pose2(0.0, 0.0, 0.0)), (1.0, Pose2(1.2, 0.0, 0.0)), (2.0, Pose2(2.4, 0.0, 0.0))]
+    poses += [(2.9, Pose2(3.5, 0.0, 0.0)), (3.0, Pose2(3.6, 0.0, math.pi / 2))]
+    poses += [(4.0, Pose2(3.6, 1.2, math.pi / 2)), (5.0, Pose2(3.6, 2.4, math.pi / 2))]
+    for t, pose in poses:
+        ex.step(Odometry(t, pose), None if t == 2.9 else scan(t))  # odometry only at 2.9 s
+    stamps = {k: kf.stamp_s for k, kf in ex.map.keyframes.items()}
+    turned = next(k for k, s in stamps.items() if s == 3.0)
+    east = next(k for k, s in stamps.items() if s == 2.0)
+    ex.add_loop_closure(LoopClosure(2.9, 5.0, Pose2(0.1, 2.4, math.pi / 2)))
+    closure = [e for e in ex.map.graph.edges if e.kind is EdgeType.LOOP_CLOSURE]
+    assert len(closure) == 1
+    latest = next(k for k, s in stamps.items() if s == 5.0)
+    assert {closure[0].from_id, closure[0].to_id} == {east, latest}
+    assert turned not in (closure[0].from_id, closure[0].to_id)
 
 
 def test_estimator_reset_keeps_setpoints_continuous():

@@ -7,7 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.core.errors import ScanError
-from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
+from companion.core.fov_polygon import PolygonParams, VertexKind, on_scanned_surface, scan_to_polygon
+from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan
 
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
@@ -124,3 +125,33 @@ def test_random_scans_give_valid_polygons_that_hold_their_origin(ranges, fov):
     assert poly.shape.covers(shapely.Point(0.0, 0.0))
     assert poly.kinds.shape[0] == poly.vertices_xy.shape[0]
     assert np.all(np.linalg.norm(poly.vertices_xy, axis=1) <= 5.0 + 1e-9)
+
+
+def test_on_scanned_surface_is_where_the_ray_through_a_point_returned_at_its_range():
+    r = np.full(64, 3.0)
+    r[40:] = 5.0  # no return on the left part
+    s = scan(r)
+    sensor = Pose2(1.0, 2.0, 0.5)  # the points below are given in the frame the sensor pose is in
+    body = np.array(
+        [
+            [3.0, 0.0],  # on the wall the scan sees
+            [2.0, 0.0],  # in front of it: seen free
+            [4.0, 0.0],  # behind it: hidden, not known to be surface
+            [5.0 * math.cos(0.5), 5.0 * math.sin(0.5)],  # at the range limit of a ray without a return
+            [0.0, 3.0],  # outside the field of view
+        ]
+    )
+    pts = sensor.apply(body)
+    assert on_scanned_surface(s, sensor, pts, 0.15).tolist() == [True, False, False, False, False]
+
+
+def test_an_occlusion_frontier_is_not_taken_for_surface():
+    """The vertex put at the near range on the far ray lies next to the occluder's return, yet
+    the ray through it returned far away: the shadow behind stays a frontier."""
+    r = np.full(64, 4.0)
+    r[30:] = 1.5
+    poly = scan_to_polygon(scan(r), PolygonParams(min_vertex_spacing_m=0.0, side_frontier_spacing_m=0.0))
+    frontier = poly.vertices_xy[poly.kinds == VertexKind.FRONTIER]
+    occlusion = frontier[np.isclose(np.linalg.norm(frontier, axis=1), 1.5, atol=0.05)]
+    assert occlusion.shape[0] >= 1
+    assert not on_scanned_surface(scan(r), Pose2(0.0, 0.0, 0.0), occlusion, 0.15).any()

@@ -15,10 +15,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
+from numpy.typing import NDArray
 from shapely import affinity
 
 from companion.core.errors import CoreError
-from companion.core.fov_polygon import PolygonParams, scan_to_polygon
+from companion.core.fov_polygon import PolygonParams, on_scanned_surface, scan_to_polygon
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
@@ -131,6 +132,7 @@ class Explorer:
         vehicle = self.anchor.between(odom.pose)
         live = None
         live_view: Callable[[], shapely.Geometry] | None = None
+        live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
         if self._live is not None:
             pose_at_scan, returns, newest = self._live
             scan_pose = self.anchor.between(pose_at_scan)
@@ -140,8 +142,13 @@ class Explorer:
                 shape = scan_to_polygon(newest, self.params.polygon).shape
                 return affinity.affine_transform(shape, scan_pose.affine())
 
+            def live_surface(points_xy: FloatArray, tol_m: float) -> NDArray[np.bool_]:
+                return on_scanned_surface(newest, scan_pose, points_xy, tol_m)
+
         velocity = self._velocity_in_frame(odom)
-        decision = self.planner.plan(self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view)
+        decision = self.planner.plan(
+            self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view, live_surface
+        )
         t = decision.target  # in the current keyframe's frame, before any relocalisation
         x, y = self.anchor.apply_point(t.x_m, t.y_m)
         sp = Setpoint(x, y, wrap_angle(t.yaw_rad + self.anchor.yaw_rad))
@@ -163,6 +170,7 @@ class Explorer:
             "frontiers_left": self.map.open_frontier_count(),
             "frontiers_set_aside": len(self.planner.unreachable(self.map)),
             "frontiers_closed_on_sight": self.planner.closed_on_sight,
+            "frontiers_closed_on_surface": self.planner.closed_on_surface,
         }
 
     def add_loop_closure(self, closure: LoopClosure) -> None:
@@ -183,17 +191,23 @@ class Explorer:
         self._pending_closures = keep
 
     def _apply_loop_closure(self, closure: LoopClosure) -> bool:
-        """Turn a loop closure into a pose-graph edge between the keyframes nearest in time.
+        """Turn a loop closure into a pose-graph edge between keyframes near its two moments: the
+        nearest in time whose view holds where the vehicle was at that moment (so the edge joins
+        places that see each other, not two sides of a wall the vehicle had just flown round),
+        else the nearest in time.
 
         Returns False (and counts it) when no keyframe is close enough in time to either moment
         or the odometry at those moments is not known.
         """
         gap = self.params.loop_closure_max_gap_s
-        a = self._keyframe_near(closure.earlier_stamp_s, gap)
-        b = self._keyframe_near(closure.current_stamp_s, gap)
         pe = self.history.at(closure.earlier_stamp_s)
         pc = self.history.at(closure.current_stamp_s)
-        if a is None or b is None or a == b or pe is None or pc is None or not closure.earlier_to_current.is_finite():
+        if pe is None or pc is None or not closure.earlier_to_current.is_finite():
+            self.loop_closures_rejected += 1
+            return False
+        a = self._keyframe_near(closure.earlier_stamp_s, pe, gap)
+        b = self._keyframe_near(closure.current_stamp_s, pc, gap)
+        if a is None or b is None or a == b:
             self.loop_closures_rejected += 1
             return False
         ka, kb = self.map.keyframes[a], self.map.keyframes[b]
@@ -232,13 +246,18 @@ class Explorer:
         clearance = self.planner.clearance_now_m
         return limit_lead(sp, pose, (float(vx), float(vy)), returns, clearance, body_radius_m, self.params.lead)
 
-    def _keyframe_near(self, stamp_s: float, gap_s: float) -> int | None:
-        best, best_gap = None, gap_s
-        for k, kf in self.map.keyframes.items():
-            d = abs(kf.stamp_s - stamp_s)
-            if d <= best_gap:
-                best, best_gap = k, d
-        return best
+    def _keyframe_near(self, stamp_s: float, pose: Pose2, gap_s: float) -> int | None:
+        """The keyframe nearest in time to ``stamp_s`` (within ``gap_s``) whose view holds
+        ``pose``'s position, else the nearest in time. Odometry spans a few seconds here only."""
+        near = [
+            (abs(kf.stamp_s - stamp_s), k) for k, kf in self.map.keyframes.items() if abs(kf.stamp_s - stamp_s) <= gap_s
+        ]
+        for _, k in sorted(near):
+            kf = self.map.keyframes[k]
+            rel = kf.odom_pose.between(pose)
+            if kf.polygon.shape.dwithin(shapely.Point(rel.x_m, rel.y_m), 0.05):  # its origin too
+                return k
+        return min(near)[1] if near else None
 
     def _maybe_add_keyframe(self, scan: DepthScan, odom: Odometry) -> bool:
         pose = self.history.at(scan.stamp_s) or odom.pose

@@ -16,7 +16,7 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from companion.core.geometry import FloatArray
+from companion.core.geometry import FloatArray, Pose2
 from companion.core.messages import DepthScan
 
 
@@ -239,3 +239,25 @@ def _largest_valid_part(shape: shapely.Polygon) -> shapely.Polygon:
     if not polys:
         return shapely.Polygon()
     return max(polys, key=lambda g: g.area)
+
+
+def on_scanned_surface(
+    scan: DepthScan, sensor: Pose2, points_xy: FloatArray, tol_m: float, no_return_margin_m: float = 0.02
+) -> NDArray[np.bool_]:
+    """Which points (in the frame ``sensor`` is given in) the scan sees as surface: the ray
+    through the point returned within ``tol_m`` of the point's range. A point nearer than the
+    return is seen free, one farther is hidden behind it; neither is surface. Points outside
+    the field of view, or along rays without a return (at most ``no_return_margin_m`` short of
+    the maximum range counts as none), are not."""
+    pts = sensor.inverse().apply(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
+    rng = np.hypot(pts[:, 0], pts[:, 1])
+    bearing = np.arctan2(pts[:, 1], pts[:, 0])
+    b = scan.bearings_rad
+    j = np.clip(np.searchsorted(b, bearing), 1, b.size - 1)
+    j = np.where(np.abs(bearing - b[j - 1]) <= np.abs(bearing - b[j]), j - 1, j)
+    half_step = 0.5 * np.abs(np.gradient(b))[j]
+    ray = scan.ranges_m[j]
+    with np.errstate(invalid="ignore"):
+        returned = np.isfinite(ray) & (ray >= scan.min_range_m) & (ray < scan.max_range_m - no_return_margin_m)
+        surface: NDArray[np.bool_] = (np.abs(bearing - b[j]) <= half_step) & returned & (np.abs(ray - rng) <= tol_m)
+    return surface

@@ -24,6 +24,7 @@ from enum import Enum
 
 import numpy as np
 import shapely
+from numpy.typing import NDArray
 
 from companion.core.errors import GraphError
 from companion.core.fov_polygon import VertexKind
@@ -68,6 +69,11 @@ class PlannerParams:
     corner_reached_m: float = 0.25  # a path's corner counts as passed this close (slow, no overshoot)
     corner_speed_mps: float = 0.5  # and a waypoint as reached only this slow: a sharp turn after it
     # must not carry the vehicle's momentum sideways into a wall
+    # A goal candidate the newest scan sees as surface (within the tolerance) is closed. Without
+    # loop closures a view in the neighbourhood may sit a loop's drift away from where it was
+    # taken, its vertices on walls they never were: measured slower there, so off (see app).
+    close_on_surface: bool = True
+    surface_tol_m: float = 0.15
 
     @property
     def clearance_m(self) -> float:
@@ -146,6 +152,7 @@ class FrontierPlanner:
     set_aside: set[FrontierKey] = field(default_factory=set)
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
+    closed_on_surface: int = 0  # frontiers closed because the newest scan sees a surface right there
     clearance_now_m: float = math.inf  # the vehicle's distance to the nearest known obstacle, last plan
     # keyframe -> (map size, loop closures) when its frontiers were last closed through the graph
     _graph_checked: dict[int, tuple[int, int]] = field(default_factory=dict)
@@ -159,6 +166,7 @@ class FrontierPlanner:
     _speed_mps: float = 0.0
     _velocity: FloatArray = field(default_factory=lambda: np.zeros(2))
     _live_view: Callable[[], shapely.Geometry] | None = None
+    _live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
     _grid: tuple[LocalView, FreeSpaceGrid] | None = None
     _grid_tried: tuple[LocalView, int, int] | None = None  # (view, cell): the grid found nothing there
 
@@ -171,6 +179,7 @@ class FrontierPlanner:
         live_obstacles_xy: FloatArray | None = None,
         velocity_xy: tuple[float, float] | None = None,
         live_view: Callable[[], shapely.Geometry] | None = None,
+        live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None,
     ) -> Decision:
         """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame).
 
@@ -180,6 +189,8 @@ class FrontierPlanner:
         (m/s, same frame) gates waypoint arrival: one counts as reached only once slow enough.
         ``live_view`` builds the newest scan's free-space polygon (same frame) on demand: paths
         through free space trust it over older, drifted views where they disagree.
+        ``live_surface(points, tol_m)`` says which points (same frame) the newest scan sees as
+        surface: a frontier vertex there is a wall, not a frontier (nothing lies beyond it).
         """
         view = local_map.view(frame_id)
         here = np.array([vehicle.x_m, vehicle.y_m])
@@ -187,6 +198,7 @@ class FrontierPlanner:
         self._velocity = np.zeros(2) if velocity_xy is None else np.array(velocity_xy, dtype=np.float64)
         self._speed_mps = float(np.hypot(*self._velocity))
         self._live_view = live_view
+        self._live_surface = live_surface
         self._cooling = {k: t for k, t in self._cooling.items() if t > stamp_s}
         required = self._required_clearance(view, here)
 
@@ -224,6 +236,9 @@ class FrontierPlanner:
         pose = view.poses.get(goal.key.keyframe_id)
         if pose is None:
             pose = local_map.pose_in(frame_id, goal.key.keyframe_id)
+        if self._off_surfaces(local_map, goal.key.keyframe_id, pose, np.array([goal.key.index])).size == 0:
+            self.goal = None  # the sensor now sees a wall right at it
+            return None
         gx, gy = pose.apply_point(*goal.local_xy)
         goal_xy = np.array([gx, gy])
         look = wrap_angle(goal.look_local_rad + pose.yaw_rad)
@@ -298,6 +313,22 @@ class FrontierPlanner:
         self.goal = _Goal(c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path)
         self._arrived_at = None
 
+    def _off_surfaces(
+        self, local_map: LocalMap, keyframe_id: int, pose: Pose2, idx: NDArray[np.intp]
+    ) -> NDArray[np.intp]:
+        """The frontier vertices ``idx`` of a keyframe (at ``pose`` in the current frame) that
+        the newest scan does not see as surface. Those it does are closed: a wall their own view
+        saw only as the end of its range (or not at all) stands right there, nothing lies
+        beyond, and no flight is needed to find that out. Checked for goal candidates only."""
+        if self._live_surface is None or not self.params.close_on_surface or idx.size == 0:
+            return idx
+        kf = local_map.keyframes[keyframe_id]
+        on = self._live_surface(pose.apply(kf.polygon.vertices_xy[idx]), self.params.surface_tol_m)
+        if on.any():
+            local_map.close_frontiers(keyframe_id, idx[on])
+            self.closed_on_surface += int(np.count_nonzero(on))
+        return idx[~on]
+
     def _close_looked_at(self, local_map: LocalMap, frame_id: int, key: FrontierKey) -> None:
         """The vehicle looked at this frontier from its goal, a view was taken there, and it stays
         open: nothing beyond it can be seen from where a frontier is explored (a wall the vertex's
@@ -352,6 +383,9 @@ class FrontierPlanner:
                 continue
             skip = self.set_aside | self._cooling.keys()
             idx = np.array([i for i in idx if FrontierKey(k, int(i)) not in skip], dtype=np.intp)
+            if idx.size == 0:
+                continue
+            idx = self._off_surfaces(local_map, k, pose, idx)
             if idx.size == 0:
                 continue
             v = kf.polygon.vertices_xy[idx]
