@@ -142,7 +142,7 @@ def test_on_scanned_surface_is_where_the_ray_through_a_point_returned_at_its_ran
         ]
     )
     pts = sensor.apply(body)
-    assert on_scanned_surface(s, sensor, pts, 0.15).tolist() == [True, False, False, False, False]
+    assert on_scanned_surface(s, sensor, pts, 0.15, 0.02).tolist() == [True, False, False, False, False]
 
 
 def test_an_occlusion_frontier_is_not_taken_for_surface():
@@ -154,4 +154,4 @@ def test_an_occlusion_frontier_is_not_taken_for_surface():
     frontier = poly.vertices_xy[poly.kinds == VertexKind.FRONTIER]
     occlusion = frontier[np.isclose(np.linalg.norm(frontier, axis=1), 1.5, atol=0.05)]
     assert occlusion.shape[0] >= 1
-    assert not on_scanned_surface(scan(r), Pose2(0.0, 0.0, 0.0), occlusion, 0.15).any()
+    assert not on_scanned_surface(scan(r), Pose2(0.0, 0.0, 0.0), occlusion, 0.15, 0.02).any()

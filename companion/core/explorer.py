@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from shapely import affinity
 
 from companion.core.errors import CoreError
-from companion.core.fov_polygon import PolygonParams, on_scanned_surface, scan_to_polygon
+from companion.core.fov_polygon import PolygonParams, has_return, on_scanned_surface, scan_to_polygon
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
@@ -123,7 +123,8 @@ class Explorer:
             self._apply_pending_closures()
         added = False
         if scan is not None:
-            self._live = (self.history.at(scan.stamp_s) or odom.pose, _returns_xy(scan), scan)
+            returns = _returns_xy(scan, self.params.polygon.frontier_range_tolerance_m)
+            self._live = (self.history.at(scan.stamp_s) or odom.pose, returns, scan)
             added = self._maybe_add_keyframe(scan, odom)
         if self.current_id is None:
             hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
@@ -143,7 +144,8 @@ class Explorer:
                 return affinity.affine_transform(shape, scan_pose.affine())
 
             def live_surface(points_xy: FloatArray, tol_m: float) -> NDArray[np.bool_]:
-                return on_scanned_surface(newest, scan_pose, points_xy, tol_m)
+                margin = self.params.polygon.frontier_range_tolerance_m
+                return on_scanned_surface(newest, scan_pose, points_xy, tol_m, margin)
 
         velocity = self._velocity_in_frame(odom)
         decision = self.planner.plan(
@@ -249,15 +251,14 @@ class Explorer:
     def _keyframe_near(self, stamp_s: float, pose: Pose2, gap_s: float) -> int | None:
         """The keyframe nearest in time to ``stamp_s`` (within ``gap_s``) whose view holds
         ``pose``'s position, else the nearest in time. Odometry spans a few seconds here only."""
-        near = [
-            (abs(kf.stamp_s - stamp_s), k) for k, kf in self.map.keyframes.items() if abs(kf.stamp_s - stamp_s) <= gap_s
-        ]
-        for _, k in sorted(near):
+        near = sorted((abs(kf.stamp_s - stamp_s), k) for k, kf in self.map.keyframes.items())
+        near = [(d, k) for d, k in near if d <= gap_s]
+        for _, k in near:
             kf = self.map.keyframes[k]
             rel = kf.odom_pose.between(pose)
             if kf.polygon.shape.dwithin(shapely.Point(rel.x_m, rel.y_m), 0.05):  # its origin too
                 return k
-        return min(near)[1] if near else None
+        return near[0][1] if near else None
 
     def _maybe_add_keyframe(self, scan: DepthScan, odom: Odometry) -> bool:
         pose = self.history.at(scan.stamp_s) or odom.pose
@@ -284,10 +285,8 @@ class Explorer:
         return True
 
 
-def _returns_xy(scan: DepthScan) -> FloatArray:
-    """The scan's obstacle returns (finite, within range) as body-frame points."""
-    r = scan.ranges_m
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(r) & (r >= scan.min_range_m) & (r < scan.max_range_m - 0.02)
-    b = scan.bearings_rad[ok]
-    return np.column_stack((r[ok] * np.cos(b), r[ok] * np.sin(b)))
+def _returns_xy(scan: DepthScan, no_return_margin_m: float) -> FloatArray:
+    """The scan's obstacle returns (see :func:`has_return`) as body-frame points."""
+    ok = has_return(scan, no_return_margin_m)
+    r, b = scan.ranges_m[ok], scan.bearings_rad[ok]
+    return np.column_stack((r * np.cos(b), r * np.sin(b)))

@@ -241,14 +241,22 @@ def _largest_valid_part(shape: shapely.Polygon) -> shapely.Polygon:
     return max(polys, key=lambda g: g.area)
 
 
+def has_return(scan: DepthScan, no_return_margin_m: float) -> NDArray[np.bool_]:
+    """Which rays hit something: a finite range from the minimum up to ``no_return_margin_m``
+    short of the maximum (REP 117; a range at the limit is read as no return, as the polygon does)."""
+    r = scan.ranges_m
+    with np.errstate(invalid="ignore"):
+        hit: NDArray[np.bool_] = np.isfinite(r) & (r >= scan.min_range_m) & (r < scan.max_range_m - no_return_margin_m)
+    return hit
+
+
 def on_scanned_surface(
-    scan: DepthScan, sensor: Pose2, points_xy: FloatArray, tol_m: float, no_return_margin_m: float = 0.02
+    scan: DepthScan, sensor: Pose2, points_xy: FloatArray, tol_m: float, no_return_margin_m: float
 ) -> NDArray[np.bool_]:
     """Which points (in the frame ``sensor`` is given in) the scan sees as surface: the ray
-    through the point returned within ``tol_m`` of the point's range. A point nearer than the
-    return is seen free, one farther is hidden behind it; neither is surface. Points outside
-    the field of view, or along rays without a return (at most ``no_return_margin_m`` short of
-    the maximum range counts as none), are not."""
+    through the point returned (:func:`has_return`) within ``tol_m`` of the point's range. A
+    point nearer than the return is seen free, one farther is hidden behind it; neither is
+    surface. Points outside the field of view, or along rays without a return, are not."""
     pts = sensor.inverse().apply(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
     rng = np.hypot(pts[:, 0], pts[:, 1])
     bearing = np.arctan2(pts[:, 1], pts[:, 0])
@@ -257,7 +265,7 @@ def on_scanned_surface(
     j = np.where(np.abs(bearing - b[j - 1]) <= np.abs(bearing - b[j]), j - 1, j)
     half_step = 0.5 * np.abs(np.gradient(b))[j]
     ray = scan.ranges_m[j]
+    returned = has_return(scan, no_return_margin_m)[j]
     with np.errstate(invalid="ignore"):
-        returned = np.isfinite(ray) & (ray >= scan.min_range_m) & (ray < scan.max_range_m - no_return_margin_m)
         surface: NDArray[np.bool_] = (np.abs(bearing - b[j]) <= half_step) & returned & (np.abs(ray - rng) <= tol_m)
     return surface
