@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -31,6 +32,14 @@ def test_between_then_compose_round_trips(a, b):
     c = a @ a.between(b)
     assert math.isclose(c.x_m, b.x_m, abs_tol=1e-6) and math.isclose(c.y_m, b.y_m, abs_tol=1e-6)
     assert abs(wrap_angle(c.yaw_rad - b.yaw_rad)) < 1e-9
+
+
+@given(poses)
+def test_move_puts_a_polygon_where_apply_puts_its_vertices(a):
+    ring = np.array([[0.0, 0.0], [4.0, -1.0], [3.0, 2.5], [0.5, 1.0]])
+    moved = a.move(shapely.Polygon(ring))
+    assert moved.is_valid and math.isclose(moved.area, shapely.Polygon(ring).area, rel_tol=1e-9)
+    assert np.array_equal(np.asarray(moved.exterior.coords)[:-1], a.apply(ring))
 
 
 @given(poses)

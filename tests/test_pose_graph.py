@@ -45,3 +45,41 @@ def test_unknown_keyframes_and_bad_edges_raise():
     g.add_keyframe(9)
     with pytest.raises(GraphError):
         g.relative(0, 9)
+
+
+def _as_walk(g: PoseGraph, start: int) -> dict[int, tuple[int, tuple[float, float, float]]]:
+    return {
+        v.keyframe_id: (v.hops, (v.pose_in_start.x_m, v.pose_in_start.y_m, v.pose_in_start.yaw_rad))
+        for v in g.walk(start)
+    }
+
+
+def _as_reached(g: PoseGraph, start: int) -> dict[int, tuple[int, tuple[float, float, float]]]:
+    r = g.reached(start)
+    return {int(k): (int(h), tuple(float(c) for c in p)) for k, h, p in zip(r.ids, r.hops, r.poses, strict=True)}
+
+
+def test_reached_matches_the_walk_as_the_graph_grows_and_closes_loops():
+    """Kept per start and extended by new leaves, it must still say what a fresh walk says; a
+    loop closure (which shortens paths) and a keyframe joining two others must not be missed."""
+    g = PoseGraph()
+    step = Pose2(1.0, 0.1, 0.2)
+    g.add_keyframe(0)
+    for k in range(1, 8):
+        g.add_keyframe(k)
+        g.add_edge(k - 1, k, step, EdgeType.ODOMETRY)
+        for start in (0, k // 2):
+            assert _as_reached(g, start) == _as_walk(g, start)
+    g.add_edge(1, 7, Pose2(0.5, -2.0, 1.0), EdgeType.LOOP_CLOSURE)
+    assert _as_reached(g, 0)[7][0] == 2 and _as_reached(g, 0) == _as_walk(g, 0)
+    g.add_keyframe(8)  # hangs off 7 by odometry, then 2 closes a loop onto it
+    g.add_edge(7, 8, step, EdgeType.ODOMETRY)
+    assert _as_reached(g, 3) == _as_walk(g, 3)
+    g.add_edge(2, 8, Pose2(-1.0, 1.0, 0.5), EdgeType.LOOP_CLOSURE)
+    assert _as_reached(g, 3)[8][0] == 2 and _as_reached(g, 3) == _as_walk(g, 3)
+    g.add_keyframe(9)
+    g.add_keyframe(10)
+    g.add_edge(9, 10, step, EdgeType.ODOMETRY)  # a separate piece (after a reset) ...
+    assert 9 not in _as_reached(g, 0)
+    g.add_edge(8, 9, step, EdgeType.ODOMETRY)  # ... joined later, bringing 10 along
+    assert _as_reached(g, 0) == _as_walk(g, 0) and 10 in _as_reached(g, 0)

@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 from numpy.typing import NDArray
-from shapely import affinity
 
 from companion.core.errors import CoreError
 from companion.core.fov_polygon import PolygonParams, has_return, on_scanned_surface, scan_to_polygon
@@ -141,7 +140,7 @@ class Explorer:
 
             def live_view() -> shapely.Geometry:  # only built when the planner needs it
                 shape = scan_to_polygon(newest, self.params.polygon).shape
-                return affinity.affine_transform(shape, scan_pose.affine())
+                return scan_pose.move(shape)
 
             def live_surface(points_xy: FloatArray, tol_m: float) -> NDArray[np.bool_]:
                 margin = self.params.polygon.frontier_range_tolerance_m

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 from numpy.typing import NDArray
-from shapely import affinity
 
 from companion.core.errors import GraphError
 from companion.core.fov_polygon import FovPolygon, VertexKind
@@ -69,10 +68,6 @@ class Keyframe:
         return self.polygon.vertices_xy[indices] + offset_m * self.polygon.outward_xy[indices]
 
 
-def _moved(shape: shapely.Polygon, pose: Pose2) -> shapely.Polygon:
-    return affinity.affine_transform(shape, pose.affine())
-
-
 def _segments_geometry(segments: FloatArray) -> shapely.MultiLineString:
     if segments.shape[0] == 0:
         return shapely.MultiLineString()
@@ -99,6 +94,7 @@ class LocalMap:
         self._neighbours: dict[int, dict[int, Pose2]] = {}
         self._views: dict[int, LocalView] = {}
         self._next_id = 0
+        self._radii: list[float] = []  # per keyframe id, for vectorised range tests
         self.loop_closures = 0
 
     def __len__(self) -> int:
@@ -117,6 +113,7 @@ class LocalMap:
         self._next_id += 1
         kf = Keyframe(kf_id, stamp_s, odom_pose, polygon)
         self.keyframes[kf_id] = kf
+        self._radii.append(kf.radius_m)
         self.graph.add_keyframe(kf_id)
         self._neighbours[kf_id] = {}
         if parent is not None:
@@ -146,7 +143,7 @@ class LocalMap:
         if cached is not None:
             return cached
         poses = {keyframe_id: Pose2.identity(), **self._neighbours[keyframe_id]}
-        shapes = [_moved(self.keyframes[k].polygon.shape, p) for k, p in poses.items()]
+        shapes = [p.move(self.keyframes[k].polygon.shape) for k, p in poses.items()]
         # Rounding in the move can make a near-degenerate ring self-touch; repair before union.
         shapes = [s if s.is_valid else shapely.make_valid(s) for s in shapes]
         # Snap rounding: robust, and without it near-coincident edges of overlapping views leave
@@ -184,23 +181,25 @@ class LocalMap:
         if idx.size == 0:
             return 0
         p = self.params
-        nbrs = self._neighbours[keyframe_id]
-        still_open = np.ones(idx.size, dtype=bool)
-        for visit in self.graph.walk(keyframe_id):
-            if visit.hops > p.chain_max_hops:
-                break
-            k, pose = visit.keyframe_id, visit.pose_in_start
-            if k < since_id or k == keyframe_id or k in nbrs:
-                continue
-            other = self.keyframes[k]
-            if math.hypot(pose.x_m, pose.y_m) > kf.radius_m + other.radius_m:
-                continue
-            offset = p.closing_offset_m + min(p.chain_max_margin_m, p.chain_margin_per_hop_m * visit.hops)
-            open_idx = np.flatnonzero(still_open)
-            pts = pose.inverse().apply(kf.beyond_points(idx[open_idx], offset))
-            still_open[open_idx[shapely.contains_xy(other.polygon.shape, pts[:, 0], pts[:, 1])]] = False
-            if not still_open.any():
-                break
+        reach = self.graph.reached(keyframe_id)
+        ids, hops, poses = reach.ids, reach.hops, reach.poses
+        radii = np.asarray(self._radii)[ids]
+        test = (ids >= since_id) & (ids != keyframe_id) & (hops <= p.chain_max_hops)
+        test &= np.hypot(poses[:, 0], poses[:, 1]) <= kf.radius_m + radii
+        test[test] &= ~np.isin(ids[test], np.fromiter(self._neighbours[keyframe_id], dtype=np.intp))
+        if not test.any():
+            return 0
+        ids, hops, poses = ids[test], hops[test], poses[test]
+        # Every open vertex against every view at once: the points just beyond each vertex (by
+        # the view's chain margin), moved into each view's frame, tested against its polygon.
+        offset = p.closing_offset_m + np.minimum(p.chain_max_margin_m, p.chain_margin_per_hop_m * hops)
+        v, n = kf.polygon.vertices_xy[idx], kf.polygon.outward_xy[idx]
+        beyond = v[None, :, :] + offset[:, None, None] * n[None, :, :]  # (views, vertices, 2)
+        d = beyond - poses[:, None, :2]
+        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+        x, y = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]
+        shapes = np.array([self.keyframes[int(k)].polygon.shape for k in ids], dtype=object)
+        still_open = ~shapely.contains_xy(shapes[:, None], x, y).any(axis=0)
         closed = idx[~still_open]
         kf.kinds[closed] = VertexKind.FREE
         return int(closed.size)
@@ -230,7 +229,7 @@ class LocalMap:
             other = self.keyframes[other_id]
             if math.hypot(pose.x_m, pose.y_m) > kf.radius_m + other.radius_m:
                 return False
-            return bool(shape.intersects(_moved(other.polygon.shape, pose)))
+            return bool(shape.intersects(pose.move(other.polygon.shape)))
 
         return {v.keyframe_id: v.pose_in_start for v in self.graph.walk(kf_id, overlaps) if v.keyframe_id != kf_id}
 

@@ -10,11 +10,14 @@ from __future__ import annotations
 import itertools
 from collections import deque
 from collections.abc import Callable, Collection, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 
+import numpy as np
+from numpy.typing import NDArray
+
 from companion.core.errors import GraphError
-from companion.core.geometry import Pose2
+from companion.core.geometry import FloatArray, Pose2
 
 
 class EdgeType(Enum):
@@ -41,12 +44,39 @@ class Visit:
     pose_in_start: Pose2
 
 
+@dataclass(frozen=True, slots=True)
+class Reached:
+    """Every keyframe a breadth-first walk from one keyframe reaches (itself included), as arrays
+    in no particular order: ids, hops from the start, and poses in the start's frame as rows of
+    ``x_m, y_m, yaw_rad``, each composed along the walk's first path (as :meth:`PoseGraph.walk`)."""
+
+    ids: NDArray[np.intp]
+    hops: NDArray[np.intp]
+    poses: FloatArray
+
+
+@dataclass(slots=True)
+class _ReachedCache:
+    edges_seen: int  # how many of the graph's edges this covers
+    index: dict[int, int] = field(default_factory=dict)  # keyframe id -> row
+    hops: list[int] = field(default_factory=list)
+    poses: list[Pose2] = field(default_factory=list)
+
+    def add(self, keyframe_id: int, hops: int, pose: Pose2) -> None:
+        self.index[keyframe_id] = len(self.hops)
+        self.hops.append(hops)
+        self.poses.append(pose)
+
+
 class PoseGraph:
     """Keyframe ids and the edges between them; adjacency kept both ways."""
+
+    max_cached_walks = 256  # starts whose :meth:`reached` is kept and extended as the graph grows
 
     def __init__(self) -> None:
         self._adjacency: dict[int, list[tuple[int, Pose2]]] = {}
         self._edges: list[GraphEdge] = []
+        self._reached: dict[int, _ReachedCache] = {}
 
     def __contains__(self, keyframe_id: object) -> bool:
         return keyframe_id in self._adjacency
@@ -104,6 +134,44 @@ class PoseGraph:
                 pose = visit.pose_in_start.compose(rel)
                 if accept is None or accept(nbr, pose):
                     queue.append(Visit(nbr, visit.hops + 1, pose))
+
+    def reached(self, start_id: int) -> Reached:
+        """What :meth:`walk` from ``start_id`` reaches, as arrays. Kept per start, and extended
+        (not walked again) while the graph only grows by new keyframes hung on by one edge: a
+        leaf moves no one's first path, so its hops and pose follow from its parent's. Any other
+        edge (a loop closure) makes the next call walk afresh."""
+        cache = self._reached.pop(start_id, None)
+        if cache is None or not self._extend(cache):
+            cache = _ReachedCache(len(self._edges))
+            for visit in self.walk(start_id):
+                cache.add(visit.keyframe_id, visit.hops, visit.pose_in_start)
+        self._reached[start_id] = cache  # newest last: the oldest go first
+        while len(self._reached) > self.max_cached_walks:
+            del self._reached[next(iter(self._reached))]
+        poses = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in cache.poses], dtype=np.float64)
+        return Reached(
+            np.fromiter(cache.index, dtype=np.intp, count=len(cache.index)),
+            np.array(cache.hops, dtype=np.intp),
+            poses.reshape(-1, 3),
+        )
+
+    def _extend(self, cache: _ReachedCache) -> bool:
+        """Add the leaves hung on since ``cache`` was made; False when an edge did more."""
+        for edge in self._edges[cache.edges_seen :]:
+            a_in, b_in = edge.from_id in cache.index, edge.to_id in cache.index
+            if a_in == b_in:
+                if a_in:
+                    return False  # joins two reached keyframes: first paths may change
+                continue  # joins two unreached ones: judged when an edge reaches them
+            parent, leaf, rel = (
+                (edge.from_id, edge.to_id, edge.from_to) if a_in else (edge.to_id, edge.from_id, edge.from_to.inverse())
+            )
+            if len(self._adjacency[leaf]) != 1:
+                return False  # not a leaf: it may bring others along
+            row = cache.index[parent]
+            cache.add(leaf, cache.hops[row] + 1, cache.poses[row].compose(rel))
+        cache.edges_seen = len(self._edges)
+        return True
 
     def path(self, from_id: int, to_id: int, avoid: Collection[tuple[int, int]] = ()) -> list[int]:
         """Fewest-hop path of keyframe ids from ``from_id`` to ``to_id`` (both included), not
