@@ -16,7 +16,6 @@ from typing import Any
 from companion.config import Config
 from companion.core.explorer import ExplorerParams
 from companion.core.local_map import MapParams
-from companion.core.planner import PlannerParams
 from companion.core.setpoint_lead import LeadParams
 from companion.errors import CompanionError
 from companion.links.base import FlightControl, InputSource
@@ -166,12 +165,10 @@ def _publisher(outputs: Any, drops: Any) -> Any:
 
 def explorer_params(config: Config) -> ExplorerParams:
     """The map and planner tuning a config implies: without a loop-closure source, new views are
-    closed against every view along the pose graph (see MapParams.close_new_through_graph) and
-    frontiers are not closed on the newest scan's surfaces (PlannerParams.close_on_surface); the
+    closed against every view along the pose graph (see MapParams.close_new_through_graph); the
     setpoint lead bounds the speed."""
     closures = config.inputs.loop_closure != "none"
     return ExplorerParams(
         map=MapParams(close_new_through_graph=not closures),
-        planner=PlannerParams(close_on_surface=closures),
         lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m),
     )

@@ -46,7 +46,7 @@ def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
     lets the room end (not run to the time limit) at full coverage."""
     base = SimParams()
     no_slam = SimParams(base.sensor, base.vehicle, base.drift, SlamParams(enabled=False), base.physics_rate_hz)
-    params = ExplorerParams(map=MapParams(close_new_through_graph=True), planner=PlannerParams(close_on_surface=False))
+    params = ExplorerParams(map=MapParams(close_new_through_graph=True))
     world = load_world(shipped_maps / "room.geojson")
     r = run_exploration(world, "polygon", seed=1, max_time_s=900, sim_params=no_slam, explorer_params=params).report
     assert r["loop_closures"] == 0
@@ -63,7 +63,7 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     )
     params = explorer_params(config)
     assert params.map.close_new_through_graph is along_graph
-    assert params.planner.close_on_surface is not along_graph
+    assert params.planner.close_on_surface is False  # measured: it can end a run with a room unseen
     assert params.lead.max_lead_m == config.vehicle.max_setpoint_lead_m
 
 
@@ -86,7 +86,12 @@ def test_a_frontier_the_newest_scan_sees_as_wall_is_closed_without_flying_to_it(
     scan returns from the wall right at the middle vertices: they are closed and the goal moves
     on; the arc's ends, beside the wall's unseen part, stay open."""
     wall_x = 5.0
-    ex = Explorer(ExplorerParams(polygon=PolygonParams(side_frontier_spacing_m=0.0)))  # the arc only
+    ex = Explorer(
+        ExplorerParams(
+            polygon=PolygonParams(side_frontier_spacing_m=0.0),  # the arc only
+            planner=PlannerParams(close_on_surface=True),  # opt-in (off by default)
+        )
+    )
     first = DepthScan(0.0, BEARINGS, np.minimum(wall_x / np.cos(BEARINGS), 5.0), 5.0)
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), first)
     kf = ex.map.keyframes[0]

@@ -69,10 +69,11 @@ class PlannerParams:
     corner_reached_m: float = 0.25  # a path's corner counts as passed this close (slow, no overshoot)
     corner_speed_mps: float = 0.5  # and a waypoint as reached only this slow: a sharp turn after it
     # must not carry the vehicle's momentum sideways into a wall
-    # A goal candidate the newest scan sees as surface (within the tolerance) is closed. Without
-    # loop closures a view in the neighbourhood may sit a loop's drift away from where it was
-    # taken, its vertices on walls they never were: measured slower there, so off (see app).
-    close_on_surface: bool = True
+    # A goal candidate the newest scan sees as surface (within the tolerance) is closed. Off: it
+    # saves 10-26 % of the flight time, but it also closed a door's last frontiers at the jamb's
+    # corner and ended runs `complete` with a room unseen (docs/benchmarks.md, session 7); and
+    # without loop closures, drifted neighbour views put vertices on walls they never were on.
+    close_on_surface: bool = False
     surface_tol_m: float = 0.15
 
     @property
