@@ -94,7 +94,6 @@ class LocalMap:
         self._neighbours: dict[int, dict[int, Pose2]] = {}
         self._views: dict[int, LocalView] = {}
         self._next_id = 0
-        self._radii: list[float] = []  # per keyframe id, for vectorised range tests
         self.loop_closures = 0
 
     def __len__(self) -> int:
@@ -113,7 +112,6 @@ class LocalMap:
         self._next_id += 1
         kf = Keyframe(kf_id, stamp_s, odom_pose, polygon)
         self.keyframes[kf_id] = kf
-        self._radii.append(kf.radius_m)
         self.graph.add_keyframe(kf_id)
         self._neighbours[kf_id] = {}
         if parent is not None:
@@ -183,7 +181,7 @@ class LocalMap:
         p = self.params
         reach = self.graph.reached(keyframe_id)
         ids, hops, poses = reach.ids, reach.hops, reach.poses
-        radii = np.asarray(self._radii)[ids]
+        radii = np.fromiter((self.keyframes[int(k)].radius_m for k in ids), dtype=np.float64, count=ids.size)
         test = (ids >= since_id) & (ids != keyframe_id) & (hops <= p.chain_max_hops)
         test &= np.hypot(poses[:, 0], poses[:, 1]) <= kf.radius_m + radii
         test[test] &= ~np.isin(ids[test], np.fromiter(self._neighbours[keyframe_id], dtype=np.intp))
