@@ -127,8 +127,7 @@ class GridExplorer:
         wall_cells = int(math.ceil(self.params.clearance_m / res))
         body_cells = int(math.ceil(self.params.body_radius_m / res))
         free = self.grid == FREE
-        body_clear = free & ~dilate(occupied | (self.grid == UNKNOWN), body_cells)
-        passable = body_clear & ~dilate(occupied, wall_cells)
+        passable = self._body_clear() & ~dilate(occupied, wall_cells)
         i, j = self._cell(pose.x_m, pose.y_m)
         if passable[i, j]:
             return passable
@@ -138,6 +137,12 @@ class GridExplorer:
         near &= free & ~dilate(occupied, body_cells)
         near[i, j] = True
         return passable | near
+
+    def _body_clear(self) -> NDArray[np.bool_]:
+        """Free cells the body fits in: its radius clear of walls and of unknown space."""
+        body_cells = int(math.ceil(self.params.body_radius_m / self.params.resolution_m))
+        free: NDArray[np.bool_] = self.grid == FREE
+        return free & ~dilate((self.grid == OCCUPIED) | (self.grid == UNKNOWN), body_cells)
 
     def _plan(self, pose: Pose2) -> bool:
         """Shortest path on the grid to the nearest frontier; False when none is reachable."""
@@ -232,6 +237,16 @@ class GridExplorer:
         nearest = int(np.argmin(np.hypot(pts[:, 0] - here[0], pts[:, 1] - here[1])))
         del self._path[:nearest]
         passable = self._passable(pose)
+        back = self._path[0]
+        if math.hypot(back[0] - here[0], back[1] - here[1]) > p.goal_reached_m and not self._visible(
+            here, back, self._body_clear()
+        ):
+            # Braking carried it off the path (a goal that went stale mid-flight, a new one behind
+            # it), where the straight way back clips a wall's end: plan anew from here.
+            if not self._plan(pose):
+                self.done = True
+                return None
+            passable = self._passable(pose)
         if (
             len(self._path) > 1
             and math.hypot(self._path[0][0] - here[0], self._path[0][1] - here[1]) < p.goal_reached_m

@@ -4,6 +4,7 @@ import numpy as np
 
 from companion.core.geometry import Pose2
 from sitl.coverage import CoverageGrid
+from sitl.grid_explorer import FREE, OCCUPIED, UNKNOWN, GridExplorer
 from sitl.runner import run_exploration
 from sitl.world import load_world
 from tests.conftest import square, write_map
@@ -33,3 +34,24 @@ def test_grid_baseline_reaches_full_coverage_on_a_small_map(small_room):
     assert r["termination"] == "complete"
     assert r["coverage"] >= 0.99
     assert r["collisions"] == 0
+
+
+def test_grid_baseline_replans_when_braking_left_it_behind_a_wall_end():
+    # Free 6 x 6 m square, unknown beyond x = 5.5 (the frontier), a wall along y = 3 from x = 0 to 3.
+    ex = GridExplorer((0.0, 0.0, 6.0, 6.0))
+    ex.grid[:] = OCCUPIED
+    inside = (slice(ex._cell(0.0, 0.0)[0], ex._cell(0.0, 6.0)[0]), slice(ex._cell(0.0, 0.0)[1], ex._cell(5.5, 0.0)[1]))
+    ex.grid[inside] = FREE
+    ex.grid[ex._cell(0.0, 0.0)[0] : ex._cell(0.0, 6.0)[0], ex._cell(5.5, 0.0)[1] : ex._cell(6.0, 0.0)[1]] = UNKNOWN
+    wi = ex._cell(0.0, 3.0)[0]
+    ex.grid[wi - 1 : wi + 1, : ex._cell(3.0, 0.0)[1]] = OCCUPIED
+    # The path ran south of the wall; momentum carried the vehicle round its end to the north side.
+    ex._path = [(2.0, 2.0), (4.0, 2.0), (5.0, 2.0)]
+    ex._frontier_cell = tuple(int(v[0]) for v in np.nonzero(ex.frontier_cells()))
+    here = Pose2(2.0, 3.8, 0.0)
+    sp = ex.step(here, None)
+    # Whatever it holds or aims at now, the straight line there must not cross the wall.
+    xs, ys = np.linspace(here.x_m, sp.x_m, 50), np.linspace(here.y_m, sp.y_m, 50)
+    cells = [ex._cell(x, y) for x, y in zip(xs, ys, strict=True)]
+    assert all(ex.grid[c] != OCCUPIED for c in cells)
+    assert ex._path[0] != (2.0, 2.0)
