@@ -164,6 +164,7 @@ class FrontierPlanner:
     _tried_in_vain: int | None = None  # keyframe whose frontiers were last tried from it in vain
     _arrived_at: int | None = None  # route keyframe last arrived at (its origin, or its leg's end)
     _cooling: dict[FrontierKey, float] = field(default_factory=dict)  # dropped goal -> until when
+    _failed_s: dict[FrontierKey, float] = field(default_factory=dict)  # when a try last failed
     _speed_mps: float = 0.0
     _velocity: FloatArray = field(default_factory=lambda: np.zeros(2))
     _live_view: Callable[[], shapely.Geometry] | None = None
@@ -255,7 +256,7 @@ class FrontierPlanner:
             self.goal = None
             return None
         if goal.arrived_s is None and stamp_s > goal.deadline_s:
-            self._failed(goal.key)
+            self._failed(goal.key, stamp_s)
             self.goal = None
             return None
         if goal.path is not None and goal.arrived_s is None:
@@ -354,7 +355,14 @@ class FrontierPlanner:
             if local_map.keyframes[k.keyframe_id].kinds[k.index] == VertexKind.FRONTIER
         ]
 
-    def _failed(self, key: FrontierKey) -> None:
+    def _failed(self, key: FrontierKey, stamp_s: float) -> None:
+        """Count a failed try. Once per cooldown: a goal dropped as blocked is out of the running
+        for that long, and finding it so again step after step (from a keyframe's origin, say)
+        is one try, not many: it must not be set aside before it was tried again."""
+        last = self._failed_s.get(key)
+        if last is not None and stamp_s - last < self.params.blocked_cooldown_s:
+            return
+        self._failed_s[key] = stamp_s
         n = self.attempts.get(key, 0) + 1
         self.attempts[key] = n
         if n >= self.params.max_attempts:
@@ -527,7 +535,7 @@ class FrontierPlanner:
         if self._progress_target != route.target_keyframe:
             self._progress_target, self._progress_s = route.target_keyframe, stamp_s
         elif stamp_s - self._progress_s > self.params.route_timeout_s:
-            self._fail_keyframe(local_map, route.target_keyframe)
+            self._fail_keyframe(local_map, route.target_keyframe, stamp_s)
             self.blocked_legs.clear()
             self.route = None
             self._progress_target = None
@@ -542,7 +550,7 @@ class FrontierPlanner:
                 self.route = None
                 self._commit(local_map, frame_id, best, here, stamp_s)
                 return self._fly(vehicle, best.aim_xy, best.look_rad, Mode.EXPLORING, best.key)
-            self._fail_keyframe(local_map, frame_id)
+            self._fail_keyframe(local_map, frame_id, stamp_s)
             self._tried_in_vain = frame_id
             self.route = None
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
@@ -577,7 +585,7 @@ class FrontierPlanner:
             if skip == 0:
                 self.route = self._find_route(local_map, frame_id, route.target_keyframe)
                 if self.route is None:
-                    self._fail_keyframe(local_map, route.target_keyframe)
+                    self._fail_keyframe(local_map, route.target_keyframe, stamp_s)
                     self._tried_in_vain = route.target_keyframe
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         del route.keyframes[:skip]
@@ -646,9 +654,9 @@ class FrontierPlanner:
         """Within ``radius_m`` of a waypoint and slow enough to turn there."""
         return float(np.hypot(*(point - here))) <= radius_m and self._speed_mps <= self.params.corner_speed_mps
 
-    def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int) -> None:
+    def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int, stamp_s: float) -> None:
         for i in targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m):
-            self._failed(FrontierKey(keyframe_id, int(i)))
+            self._failed(FrontierKey(keyframe_id, int(i)), stamp_s)
 
     def _has_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
         kf = local_map.keyframes[keyframe_id]
