@@ -266,8 +266,8 @@ class LocalMap:
 
     def _close_at_walls(self, kf_id: int, nbrs: dict[int, Pose2]) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
-        sensor's limit leaves such vertices, and nothing beyond them can ever be seen), nor is one
-        where a ray ran out of range just short of a wall another view saw behind it. All in
+        sensor's limit leaves such vertices, and nothing beyond them can ever be seen), nor, with
+        ``wall_on_ray_m`` set, is one where a ray ran out of range by a wall across it. All in
         the new keyframe's frame: its open vertices against every neighbour's walls at once, and
         every neighbour's open vertices against its own walls."""
         kf = self.keyframes[kf_id]
