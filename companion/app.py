@@ -167,8 +167,7 @@ def explorer_params(config: Config) -> ExplorerParams:
     """The map and planner tuning a config implies: without a loop-closure source, new views are
     closed against every view along the pose graph (see MapParams.close_new_through_graph); the
     setpoint lead bounds the speed."""
-    closures = config.inputs.loop_closure != "none"
     return ExplorerParams(
-        map=MapParams(close_new_through_graph=not closures),
+        map=MapParams(close_new_through_graph=config.inputs.loop_closure == "none"),
         lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m),
     )

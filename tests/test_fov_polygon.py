@@ -155,15 +155,3 @@ def test_an_occlusion_frontier_is_not_taken_for_surface():
     occlusion = frontier[np.isclose(np.linalg.norm(frontier, axis=1), 1.5, atol=0.05)]
     assert occlusion.shape[0] >= 1
     assert not on_scanned_surface(scan(r), Pose2(0.0, 0.0, 0.0), occlusion, 0.15, 0.02).any()
-
-
-def test_only_vertices_where_a_ray_ran_out_of_range_are_ray_ends():
-    r = np.full(64, 5.0)
-    r[30:] = 1.5  # a near object: its shadow edge carries occlusion frontiers; the FOV's sides others
-    r[40] = np.nan  # an invalid return: unknown along the ray, but no ray ran out of range there
-    poly = scan_to_polygon(scan(r), PolygonParams(min_vertex_spacing_m=0.0))
-    at_max = np.isclose(np.hypot(poly.vertices_xy[:, 0], poly.vertices_xy[:, 1]), 5.0)
-    assert at_max.sum() == 30
-    assert np.array_equal(poly.ray_end, at_max)
-    occlusion_or_side = (poly.kinds == VertexKind.FRONTIER) & ~at_max
-    assert occlusion_or_side.sum() >= 3 and not poly.ray_end[occlusion_or_side].any()

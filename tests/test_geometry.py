@@ -6,7 +6,7 @@ import shapely
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.core.geometry import Pose2, free_travel_m, segments_cross, wrap_angle
+from companion.core.geometry import Pose2, free_travel_m, wrap_angle
 
 coord = st.floats(-100, 100, allow_nan=False)
 angle = st.floats(-10, 10, allow_nan=False)
@@ -60,11 +60,3 @@ def test_free_travel_stops_where_the_disc_would_touch_a_point():
     assert free_travel_m(pts[2:], (1.0, 0.0), 0.3) == math.inf
     assert free_travel_m(pts, (5.0, 0.0), 0.3) == pytest.approx(1.7)
     assert free_travel_m(pts, (0.0, 0.0), 0.3) == math.inf
-
-
-def test_segments_cross_finds_crossings_and_touches_only():
-    walls = np.array([[[1.0, -1.0], [1.0, 1.0]]])  # a wall along x = 1
-    starts = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
-    ends = np.array([[2.0, 0.0], [1.0, 0.5], [2.0, 2.0], [0.9, 0.0]])
-    assert segments_cross(starts, ends, walls).tolist() == [True, True, False, False]
-    assert segments_cross(starts, ends, np.zeros((0, 2, 2))).tolist() == [False] * 4

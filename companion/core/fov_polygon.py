@@ -57,9 +57,7 @@ class FovPolygon:
 
     ``vertices_xy`` is (N, 2) in counter-clockwise order, ``kinds`` the initial ``VertexKind`` of
     each vertex, ``outward_xy`` a unit outward normal per vertex (used to ask whether the space just
-    beyond a frontier was seen by another view), ``has_origin`` whether vertex 0 is the sensor,
-    ``ray_end`` which vertices end a ray that returned nothing (the unseen space lies on along
-    that ray; occlusion and side frontiers border unseen space sideways instead).
+    beyond a frontier was seen by another view), ``has_origin`` whether vertex 0 is the sensor.
     """
 
     vertices_xy: FloatArray
@@ -67,7 +65,6 @@ class FovPolygon:
     outward_xy: FloatArray
     has_origin: bool
     shape: shapely.Polygon
-    ray_end: NDArray[np.bool_]
 
     @property
     def size(self) -> int:
@@ -97,9 +94,8 @@ class FovPolygon:
         return np.stack((self.vertices_xy[idx], self.vertices_xy[nxt_idx]), axis=1)
 
 
-def _classify_ranges(scan: DepthScan, tol_m: float) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
-    """Effective ranges, frontier flags and no-return flags per ray, following the scan's range
-    conventions."""
+def _classify_ranges(scan: DepthScan, tol_m: float) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Effective ranges and frontier flags per ray, following the scan's range conventions."""
     r = scan.ranges_m
     with np.errstate(invalid="ignore"):
         no_return = np.isposinf(r) | (r >= scan.max_range_m - tol_m)
@@ -111,17 +107,12 @@ def _classify_ranges(scan: DepthScan, tol_m: float) -> tuple[FloatArray, NDArray
     # polygon is pinched to the minimum range, never claiming free space that was not seen.
     ranges = np.where(too_close | invalid, max(scan.min_range_m, 1e-3), ranges)
     frontier = no_return | invalid
-    return ranges.astype(np.float64), frontier, no_return
+    return ranges.astype(np.float64), frontier
 
 
 def _insert_occlusions(
-    bearings: FloatArray,
-    ranges: FloatArray,
-    frontier: NDArray[np.bool_],
-    ray_end: NDArray[np.bool_],
-    threshold_m: float,
-    spacing_m: float,
-) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
+    bearings: FloatArray, ranges: FloatArray, frontier: NDArray[np.bool_], threshold_m: float, spacing_m: float
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """Insert frontier vertices at each range jump (thesis eq. 2.4).
 
     The first sits at the nearer range on the farther ray, so the polygon edge from it runs along
@@ -131,7 +122,6 @@ def _insert_occlusions(
     """
     ranges = ranges.copy()
     frontier = frontier.copy()
-    ray_end = ray_end.copy()
     # A lone ray much longer than both neighbours would make a zero-width spike (out and back
     # along one bearing): cut it to the longer neighbour, as unknown beyond.
     if ranges.size >= 3:
@@ -139,27 +129,23 @@ def _insert_occlusions(
         spike = np.flatnonzero(ranges[1:-1] - longer > threshold_m) + 1
         ranges[spike] = longer[spike - 1]
         frontier[spike] = True
-        ray_end[spike] = False
     # A jump at either end ray would leave a zero-width spike along that ray (the polygon returns
     # to the origin along it): cut the end ray back to its neighbour's range, as unknown.
     for end, inner in ((0, 1), (-1, -2)):
         if ranges[end] - ranges[inner] > threshold_m:
             ranges[end] = ranges[inner]
             frontier[end] = True
-            ray_end[end] = False
     jumps = np.flatnonzero(np.abs(np.diff(ranges)) > threshold_m)
     if jumps.size == 0:
-        return bearings, ranges, frontier, ray_end
+        return bearings, ranges, frontier
     b_out: list[float] = []
     r_out: list[float] = []
     f_out: list[bool] = []
-    e_out: list[bool] = []
     jump_set = set(jumps.tolist())
     for i in range(bearings.size):
         b_out.append(float(bearings[i]))
         r_out.append(float(ranges[i]))
         f_out.append(bool(frontier[i]))
-        e_out.append(bool(ray_end[i]))
         if i in jump_set:
             near, far = min(ranges[i], ranges[i + 1]), max(ranges[i], ranges[i + 1])
             rising = ranges[i] < ranges[i + 1]
@@ -171,8 +157,7 @@ def _insert_occlusions(
                 b_out.append(float(far_bearing))
                 r_out.append(float(r))
                 f_out.append(True)
-                e_out.append(False)
-    return np.array(b_out), np.array(r_out), np.array(f_out, dtype=bool), np.array(e_out, dtype=bool)
+    return np.array(b_out), np.array(r_out), np.array(f_out, dtype=bool)
 
 
 def _subsample(points: FloatArray, frontier: NDArray[np.bool_], spacing_m: float) -> NDArray[np.intp]:
@@ -208,13 +193,13 @@ def _outward_normals(vertices: FloatArray) -> FloatArray:
 def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> FovPolygon:
     """Build the field-of-view polygon of ``scan`` in its own (body = keyframe) frame."""
     p = params or PolygonParams()
-    ranges, frontier, no_return = _classify_ranges(scan, p.frontier_range_tolerance_m)
-    bearings, ranges, frontier, ray_end = _insert_occlusions(
-        scan.bearings_rad, ranges, frontier, no_return, p.occlusion_threshold_m, p.occlusion_frontier_spacing_m
+    ranges, frontier = _classify_ranges(scan, p.frontier_range_tolerance_m)
+    bearings, ranges, frontier = _insert_occlusions(
+        scan.bearings_rad, ranges, frontier, p.occlusion_threshold_m, p.occlusion_frontier_spacing_m
     )
     pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
     keep = _subsample(pts, frontier, p.min_vertex_spacing_m)
-    pts, frontier, ray_end = pts[keep], frontier[keep], ray_end[keep]
+    pts, frontier = pts[keep], frontier[keep]
     span = scan.bearings_rad[-1] - scan.bearings_rad[0]
     increment = span / (scan.bearings_rad.size - 1)
     has_origin = span + 1.5 * increment < 2.0 * math.pi
@@ -231,12 +216,11 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
                 np.full(last.shape[0], VertexKind.FRONTIER, dtype=np.int8),
             )
         )
-        ray_end = np.concatenate((np.zeros(1 + first.shape[0], bool), ray_end, np.zeros(last.shape[0], bool)))
     shape = shapely.Polygon(pts)
     if not shape.is_valid:
         shape = _largest_valid_part(shape)
     shapely.prepare(shape)
-    return FovPolygon(pts, kinds, _outward_normals(pts), has_origin, shape, ray_end)
+    return FovPolygon(pts, kinds, _outward_normals(pts), has_origin, shape)
 
 
 def _side_points(end_xy: FloatArray, spacing_m: float) -> FloatArray:

@@ -103,27 +103,6 @@ def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> Floa
     return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)
 
 
-def segments_cross(starts_xy: FloatArray, ends_xy: FloatArray, segments: FloatArray) -> NDArray[np.bool_]:
-    """Which of the N segments ``starts_xy[i] -> ends_xy[i]`` cross any of the M segments (M, 2, 2)
-    (proper crossings and touching ends both count)."""
-    if segments.shape[0] == 0 or starts_xy.shape[0] == 0:
-        return np.zeros(starts_xy.shape[0], dtype=bool)
-    p, r = starts_xy[:, None, :], (ends_xy - starts_xy)[:, None, :]
-    q, s = segments[None, :, 0, :], (segments[:, 1, :] - segments[:, 0, :])[None, :, :]
-
-    def cross(a: FloatArray, b: FloatArray) -> FloatArray:
-        return np.asarray(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], dtype=np.float64)
-
-    denom = cross(r, s)
-    qp = q - p
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = cross(qp, s) / denom
-        u = cross(qp, r) / denom
-    hit = (np.abs(denom) > 1e-12) & (t >= 0.0) & (t <= 1.0) & (u >= 0.0) & (u <= 1.0)
-    crossed: NDArray[np.bool_] = np.asarray(hit.any(axis=1), dtype=bool)
-    return crossed
-
-
 def free_travel_m(points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float) -> float:
     """How far a disc of ``radius_m`` at the origin can move along ``direction_xy`` before it
     touches one of the points (inf when none lies in its way)."""

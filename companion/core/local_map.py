@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from companion.core.errors import GraphError
 from companion.core.fov_polygon import FovPolygon, VertexKind
-from companion.core.geometry import FloatArray, Pose2, point_segment_distances, segments_cross
+from companion.core.geometry import FloatArray, Pose2, point_segment_distances
 from companion.core.pose_graph import EdgeType, PoseGraph
 
 
@@ -31,14 +31,6 @@ class MapParams:
 
     closing_offset_m: float = 0.15  # how far beyond a frontier vertex another view must reach
     wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
-    # A frontier where a ray ran out of range is closed when another view saw a wall across that
-    # ray this close to it (either side: drift may put the wall short of it): nothing lies beyond
-    # to see. A wall just past the sensor's range otherwise leaves a row of such vertices, each
-    # worth a flight, that no view ever covers (eq. 2.15 needs free space beyond them). Off (0):
-    # at 0.5 m it saved 6-9 % of the flight time on office and loop, but it also closed the rays
-    # that led straight through a 1.1 m gap, and the alcove behind it was left unseen on two runs
-    # out of five (docs/benchmarks.md, session 8).
-    wall_on_ray_m: float = 0.0
     # Closing against views outside the neighbourhood, reached along the pose graph: the view
     # must reach farther beyond the vertex the longer the chain (drift accumulates along it).
     chain_margin_per_hop_m: float = 0.05
@@ -266,17 +258,16 @@ class LocalMap:
 
     def _close_at_walls(self, kf_id: int, nbrs: dict[int, Pose2]) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
-        sensor's limit leaves such vertices, and nothing beyond them can ever be seen), nor, with
-        ``wall_on_ray_m`` set, is one where a ray ran out of range by a wall across it. All in
+        sensor's limit leaves such vertices, and nothing beyond them can ever be seen). All in
         the new keyframe's frame: its open vertices against every neighbour's walls at once, and
         every neighbour's open vertices against its own walls."""
         kf = self.keyframes[kf_id]
+        snap = self.params.wall_snap_m
         own = kf.open_frontier_indices()
         if own.size and nbrs:
             segs = [pose.apply(self.keyframes[k].walls.reshape(-1, 2)) for k, pose in nbrs.items()]
             walls = np.vstack(segs).reshape(-1, 2, 2)
-            closed = self._walled(*self._ray_ends(kf, own, Pose2.identity()), walls)
-            kf.kinds[own[closed]] = VertexKind.FREE
+            kf.kinds[own[_near(kf.polygon.vertices_xy[own], walls, snap)]] = VertexKind.FREE
         own_walls = kf.walls
         if own_walls.shape[0] == 0:
             return
@@ -284,29 +275,14 @@ class LocalMap:
         idx = [other.open_frontier_indices() for other, _ in theirs]
         if not any(i.size for i in idx):
             return
-        pairs = list(zip(theirs, idx, strict=True))
-        ends = [self._ray_ends(other, i, pose) for (other, pose), i in pairs]
-        near = self._walled(np.vstack([a for a, _ in ends]), np.vstack([b for _, b in ends]), own_walls)
+        pts = np.vstack(
+            [pose.apply(other.polygon.vertices_xy[i]) for (other, pose), i in zip(theirs, idx, strict=True)]
+        )
+        near = _near(pts, own_walls, snap)
         start = 0
-        for (other, _), i in pairs:
+        for (other, _), i in zip(theirs, idx, strict=True):
             other.kinds[i[near[start : start + i.size]]] = VertexKind.FREE
             start += i.size
-
-    def _ray_ends(self, kf: Keyframe, indices: NDArray[np.intp], pose: Pose2) -> tuple[FloatArray, FloatArray]:
-        """The stretch of ray ``wall_on_ray_m`` either side of each vertex (moved by ``pose``);
-        one that does not end a ray without a return is just the vertex, twice."""
-        v = kf.polygon.vertices_xy[indices]
-        length = np.maximum(np.hypot(v[:, 0], v[:, 1]), 1e-9)
-        extra = np.where(kf.polygon.ray_end[indices], self.params.wall_on_ray_m, 0.0) / length
-        return pose.apply(v * (1.0 - extra)[:, None]), pose.apply(v * (1.0 + extra)[:, None])
-
-    def _walled(self, starts_xy: FloatArray, ends_xy: FloatArray, walls: FloatArray) -> NDArray[np.bool_]:
-        """Which frontier vertices (midway between start and end) a wall closes: within the snap
-        distance of one, or one crosses the stretch of their ray."""
-        closed = _near(0.5 * (starts_xy + ends_xy), walls, self.params.wall_snap_m)
-        if self.params.wall_on_ray_m > 0.0:
-            closed |= segments_cross(starts_xy, ends_xy, walls)
-        return closed
 
 
 def _near(points_xy: FloatArray, segments: FloatArray, snap_m: float) -> NDArray[np.bool_]:
