@@ -46,7 +46,7 @@ class _SerialAutopilot(threading.Thread):
                     self.mav.command_ack_send(msg.command, mavlink.MAV_RESULT_ACCEPTED)
 
 
-def test_the_link_flies_over_a_serial_port_as_the_onboard_computer() -> None:
+def test_the_link_connects_over_a_serial_port_as_the_onboard_computer() -> None:
     master, slave = os.openpty()
     tty.setraw(slave)
     autopilot = _SerialAutopilot(master)
