@@ -92,6 +92,23 @@ class Pose2:
         return math.hypot(other.x_m - self.x_m, other.y_m - self.y_m)
 
 
+def apply_each(poses: list[Pose2], points_xy: FloatArray, owner: NDArray[np.intp]) -> FloatArray:
+    """Map each point through the pose of its owner (``points_xy[i]`` through ``poses[owner[i]]``)
+    in one vectorised pass: many keyframes' points into one frame at once."""
+    xyt = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses], dtype=np.float64).reshape(-1, 3)[owner]
+    c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+    x, y = points_xy[:, 0], points_xy[:, 1]
+    return np.column_stack((c * x - s * y + xyt[:, 0], s * x + c * y + xyt[:, 1]))
+
+
+def move_each(poses: list[Pose2], geometries: NDArray[np.object_]) -> NDArray[np.object_]:
+    """Map ``geometries[i]`` through ``poses[i]`` (copies; one shapely call for all of them, where
+    :meth:`Pose2.move` in a loop costs a call per geometry)."""
+    _, owner = shapely.get_coordinates(geometries, return_index=True)
+    moved: NDArray[np.object_] = shapely.transform(geometries, lambda xy: apply_each(poses, xy, owner))
+    return moved
+
+
 def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
     """(N, M) distances from N points to M segments given as (M, 2, 2)."""
     a = segments[None, :, 0, :]

@@ -465,8 +465,8 @@ class FrontierPlanner:
     def _reach(self, view: LocalView, here: FloatArray) -> Reach | None:
         """The wavefront through the view's free space (with the newest returns) from ``here``."""
         if self._grid is None or self._grid[0] is not view:
-            segs = shapely.get_coordinates(view.obstacles).reshape(-1, 2, 2)
-            self._grid = (view, FreeSpaceGrid.build(view.grown, segs, self.params.clearance_m, self.params.grid))
+            grid = FreeSpaceGrid.build(view.grown, view.walls_xy, self.params.clearance_m, self.params.grid)
+            self._grid = (view, grid)
         live_view = None if self._live_view is None else self._live_view()
         grid = self._grid[1].with_live_scan(self._live, live_view)
         return grid.reach_from(here)
@@ -683,16 +683,19 @@ class FrontierPlanner:
         that avoids the legs seen blocked; None when there is none."""
         if target_id is not None:
             return self._route_to(local_map, frame_id, target_id)
-        # Every keyframe with open frontiers is checked through the graph (once per map size),
-        # not only the nearest: a stale frontier closed now is a flight saved later.
-        walk = local_map.graph.walk(frame_id)
-        targets = [v.keyframe_id for v in walk if self._has_live_targets(local_map, v.keyframe_id)]
+        # Nearest first: each candidate is checked through the graph before a route is planned to
+        # it (a stale frontier closed there costs a look, not a flight); the ones beyond the
+        # first reachable target wait until they are the nearest.
         # The keyframe just tried in vain from its origin goes last: its next try should come
         # after the others (a blocked goal's cooldown over), not at once from the same spot.
-        if len(targets) > 1 and self._tried_in_vain in targets:
-            targets.remove(self._tried_in_vain)
-            targets.append(self._tried_in_vain)
-        for k in targets:
+        order = [v.keyframe_id for v in local_map.graph.walk(frame_id) if v.keyframe_id != self._tried_in_vain]
+        if self._tried_in_vain in local_map.keyframes:
+            order.append(self._tried_in_vain)
+        targets = False
+        for k in order:
+            if not self._has_live_targets(local_map, k):
+                continue
+            targets = True
             route = self._route_to(local_map, frame_id, k)
             if route is not None:
                 return route
