@@ -203,3 +203,41 @@ def test_cli_reports_a_bad_map_without_a_traceback(tmp_path, capsys):
     assert main(["sim", "--map", str(bad), "--quiet"]) == 2
     captured = capsys.readouterr()
     assert "bad.geojson" in captured.out + captured.err
+
+
+def _wall_ahead_scan(t: float, distance_m: float) -> DepthScan:
+    return DepthScan(t, BEARINGS, distance_m / np.cos(BEARINGS), 5.0)
+
+
+def test_a_wall_that_left_the_field_of_view_still_bounds_the_vehicle_for_a_while():
+    """Facing north the sensor sees a wall 0.6 m away; the vehicle turns east and sees open space.
+    The wall, now beside it and out of view, stays among the obstacles the safety checks use (the
+    crash this guards against: a door jamb beside the vehicle, seen a few seconds earlier)."""
+    ex = Explorer()
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
+    east = Pose2(0.0, 0.0, -0.3)  # its field of view shares no ray with the northern one
+    ex.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
+    wall = ex.obstacles_xy
+    assert wall.shape[0] == 64
+    assert np.allclose(wall[:, 1], 0.6)  # the north wall, in the odometry frame
+    # Without the memory only the newest scan counts, and it saw no obstacle.
+    forgetful = Explorer(ExplorerParams(obstacle_memory_s=0.0))
+    forgetful.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
+    forgetful.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
+    assert forgetful.obstacles_xy.shape[0] == 0
+
+
+def test_remembered_returns_go_when_the_sensor_sees_through_them_or_after_travel():
+    """An old return where the newest scan sees free space is dropped (drift moved it, or it was
+    never there); the rest go once the vehicle has travelled the memory's distance."""
+    ex = Explorer(ExplorerParams(obstacle_memory_m=1.5))
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), _wall_ahead_scan(0.0, 2.0))
+    ex.step(Odometry(0.1, Pose2(0.0, 0.0, 0.0)), DepthScan(0.1, BEARINGS, np.full(64, 5.0), 5.0))
+    assert ex.obstacles_xy.shape[0] == 0  # seen through: the same rays now reach 5 m
+    ex.step(Odometry(0.2, Pose2(0.0, 0.0, -math.pi / 2)), _wall_ahead_scan(0.2, 1.0))  # a wall south
+    ex.step(Odometry(0.3, Pose2(0.0, 0.0, 0.3)), DepthScan(0.3, BEARINGS, np.full(64, 5.0), 5.0))
+    assert ex.obstacles_xy.shape[0] == 64  # out of view now, so kept
+    for i in range(1, 5):  # 2 m east in 0.5 m steps, less than a second
+        t = 0.3 + 0.2 * i
+        ex.step(Odometry(t, Pose2(0.5 * i, 0.0, 0.3)), DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0))
+    assert ex.obstacles_xy.shape[0] == 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -18,7 +19,7 @@ import shapely
 from numpy.typing import NDArray
 
 from companion.core.errors import CoreError
-from companion.core.fov_polygon import PolygonParams, has_return, on_scanned_surface, scan_to_polygon
+from companion.core.fov_polygon import PolygonParams, has_return, on_scanned_surface, scan_to_polygon, seen_free
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
@@ -36,6 +37,15 @@ class ExplorerParams:
     backtrack_keyframe_distance_m: float = 3.0  # fewer new views while flying through known space
     loop_closure_max_gap_s: float = 5.0  # a loop closure needs a keyframe this close in time
     velocity_window_s: float = 0.2  # odometry differenced over this long for the vehicle's velocity
+    # Obstacle returns of recent scans stay in the setpoint's lead limit: a door jamb that has
+    # left the sensor's field of view beside the vehicle still stops it short of contact. They
+    # are kept for this long and this far of travel (odometry drifts with distance), and dropped
+    # where the newest scan sees through them by the margin. 0 s keeps the newest scan's only.
+    # (Planning keeps to the newest scan: remembered returns, a little off after travel, closed
+    # narrow doors to the free-space grid and ended office runs early.)
+    obstacle_memory_s: float = 5.0
+    obstacle_memory_m: float = 1.5
+    obstacle_seen_through_m: float = 0.1
     lead: LeadParams = field(default_factory=LeadParams)  # how far setpoints may lead the vehicle
 
 
@@ -90,6 +100,40 @@ class OdometryHistory:
         self._poses = [correction.compose(p) for p in self._poses]
 
 
+class RecentReturns:
+    """Obstacle returns of the scans of the last ``memory_s`` seconds and ``memory_m`` metres of
+    travel, in the odometry frame."""
+
+    def __init__(self, memory_s: float, memory_m: float) -> None:
+        self.memory_s = memory_s
+        self.memory_m = memory_m
+        self._scans: deque[tuple[float, float, FloatArray]] = deque()  # stamp, travelled, points
+
+    def add(self, stamp_s: float, travelled_m: float, points_xy: FloatArray) -> None:
+        while self._scans and self._scans[-1][0] > stamp_s:  # the clock went back
+            self._scans.pop()
+        self._scans.append((stamp_s, travelled_m, points_xy))
+        while self._scans[0][0] < stamp_s - self.memory_s - 1e-9 or self._scans[0][1] < travelled_m - self.memory_m:
+            self._scans.popleft()
+
+    def points_xy(self) -> FloatArray:
+        if not self._scans:
+            return np.zeros((0, 2))
+        return np.vstack([pts for _, _, pts in self._scans])
+
+    def shift(self, correction: Pose2) -> None:
+        """Re-express the points after an estimator reset (``new = correction ∘ old``)."""
+        self._scans = deque((t, d, correction.apply(pts)) for t, d, pts in self._scans)
+
+    def keep(self, mask: NDArray[np.bool_]) -> None:
+        """Forget the points whose entry in ``mask`` (one per point of :meth:`points_xy`) is False."""
+        start, kept = 0, deque[tuple[float, float, FloatArray]]()
+        for t, d, pts in self._scans:
+            kept.append((t, d, pts[mask[start : start + pts.shape[0]]]))
+            start += pts.shape[0]
+        self._scans = kept
+
+
 class Explorer:
     """Map + planner behind one call: :meth:`step`."""
 
@@ -106,6 +150,9 @@ class Explorer:
         self._last_mode = Mode.EXPLORING
         self._pending_closures: list[LoopClosure] = []
         self._live: tuple[Pose2, FloatArray, DepthScan] | None = None  # newest scan: pose, returns, scan
+        self._recent = RecentReturns(self.params.obstacle_memory_s, self.params.obstacle_memory_m)
+        self._travelled_m = 0.0  # odometry path length, to age the recent returns by
+        self._obstacles_xy: FloatArray = np.zeros((0, 2))  # recent returns for this step, odometry frame
 
     @property
     def mode(self) -> Mode:
@@ -116,6 +163,8 @@ class Explorer:
         if not (odom.pose.is_finite() and math.isfinite(odom.stamp_s)):
             raise CoreError("odometry must be finite")
         self._handle_reset(odom)
+        if self._last_odom is not None:
+            self._travelled_m += self._last_odom.pose.distance_to(odom.pose)
         self.history.append(odom)
         self._last_odom = odom
         if self._pending_closures:
@@ -123,7 +172,9 @@ class Explorer:
         added = False
         if scan is not None:
             returns = _returns_xy(scan, self.params.polygon.frontier_range_tolerance_m)
-            self._live = (self.history.at(scan.stamp_s) or odom.pose, returns, scan)
+            pose_at_scan = self.history.at(scan.stamp_s) or odom.pose
+            self._live = (pose_at_scan, returns, scan)
+            self._recent.add(scan.stamp_s, self._travelled_m, pose_at_scan.apply(returns))
             added = self._maybe_add_keyframe(scan, odom)
         if self.current_id is None:
             hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
@@ -136,6 +187,7 @@ class Explorer:
         if self._live is not None:
             pose_at_scan, returns, newest = self._live
             scan_pose = self.anchor.between(pose_at_scan)
+            self._obstacles_xy = self._recent_obstacles(pose_at_scan, newest)
             live = scan_pose.apply(returns)
 
             def live_view() -> shapely.Geometry:  # only built when the planner needs it
@@ -162,6 +214,12 @@ class Explorer:
         sp = self._within_lead(sp, odom.pose, velocity)
         self._last_mode = decision.mode
         return StepResult(sp, decision.mode, added, decision)
+
+    @property
+    def obstacles_xy(self) -> FloatArray:
+        """The obstacle returns the safety checks used in the last step (odometry frame): the
+        recent scans' (:class:`RecentReturns`), less those the newest scan sees through."""
+        return self._obstacles_xy
 
     def map_counts(self) -> dict[str, int]:
         """The map and frontier figures every report carries (the simulator's and the service's)."""
@@ -228,6 +286,7 @@ class Explorer:
         correction = odom.pose.compose(last.pose.inverse())
         self.anchor = correction.compose(self.anchor)
         self.history.shift(correction)
+        self._recent.shift(correction)
 
     def _velocity_in_frame(self, odom: Odometry) -> tuple[float, float]:
         """The vehicle's velocity over the last ``velocity_window_s``, in the current keyframe's frame."""
@@ -241,11 +300,23 @@ class Explorer:
 
     def _within_lead(self, sp: Setpoint, pose: Pose2, velocity_in_frame: tuple[float, float]) -> Setpoint:
         """The setpoint limited to the lead (see :mod:`setpoint_lead`), all in the odometry frame."""
-        returns = np.zeros((0, 2)) if self._live is None else self._live[0].apply(self._live[1])
+        returns = self._obstacles_xy
         vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
         body_radius_m = self.params.planner.body_radius_m
         clearance = self.planner.clearance_now_m
         return limit_lead(sp, pose, (float(vx), float(vy)), returns, clearance, body_radius_m, self.params.lead)
+
+    def _recent_obstacles(self, pose_at_scan: Pose2, newest: DepthScan) -> FloatArray:
+        """The recent returns (odometry frame), less those the newest scan sees through (they
+        are forgotten): drift moves old returns a little, and where the sensor looks now it is
+        the authority."""
+        pts = self._recent.points_xy()
+        p = self.params
+        through = seen_free(newest, pose_at_scan, pts, p.obstacle_seen_through_m, p.polygon.frontier_range_tolerance_m)
+        if through.any():
+            self._recent.keep(~through)
+            pts = pts[~through]
+        return pts
 
     def _keyframe_near(self, stamp_s: float, pose: Pose2, gap_s: float) -> int | None:
         """The keyframe nearest in time to ``stamp_s`` (within ``gap_s``) whose view holds

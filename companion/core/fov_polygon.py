@@ -250,6 +250,21 @@ def has_return(scan: DepthScan, no_return_margin_m: float) -> NDArray[np.bool_]:
     return hit
 
 
+def _nearest_rays(
+    scan: DepthScan, sensor: Pose2, points_xy: FloatArray
+) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.bool_]]:
+    """Each point's range from the sensor, the ray nearest its bearing, and whether that ray
+    passes through it (the bearing within half a ray's spacing, so not outside the field of view)."""
+    pts = sensor.inverse().apply(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
+    rng = np.hypot(pts[:, 0], pts[:, 1])
+    bearing = np.arctan2(pts[:, 1], pts[:, 0])
+    b = scan.bearings_rad
+    j = np.clip(np.searchsorted(b, bearing), 1, b.size - 1)
+    j = np.where(np.abs(bearing - b[j - 1]) <= np.abs(bearing - b[j]), j - 1, j)
+    on_ray = np.abs(bearing - b[j]) <= 0.5 * np.abs(np.gradient(b))[j]
+    return rng, j, on_ray
+
+
 def on_scanned_surface(
     scan: DepthScan, sensor: Pose2, points_xy: FloatArray, tol_m: float, no_return_margin_m: float
 ) -> NDArray[np.bool_]:
@@ -257,15 +272,24 @@ def on_scanned_surface(
     through the point returned (:func:`has_return`) within ``tol_m`` of the point's range. A
     point nearer than the return is seen free, one farther is hidden behind it; neither is
     surface. Points outside the field of view, or along rays without a return, are not."""
-    pts = sensor.inverse().apply(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
-    rng = np.hypot(pts[:, 0], pts[:, 1])
-    bearing = np.arctan2(pts[:, 1], pts[:, 0])
-    b = scan.bearings_rad
-    j = np.clip(np.searchsorted(b, bearing), 1, b.size - 1)
-    j = np.where(np.abs(bearing - b[j - 1]) <= np.abs(bearing - b[j]), j - 1, j)
-    half_step = 0.5 * np.abs(np.gradient(b))[j]
+    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
     ray = scan.ranges_m[j]
     returned = has_return(scan, no_return_margin_m)[j]
     with np.errstate(invalid="ignore"):
-        surface: NDArray[np.bool_] = (np.abs(bearing - b[j]) <= half_step) & returned & (np.abs(ray - rng) <= tol_m)
+        surface: NDArray[np.bool_] = on_ray & returned & (np.abs(ray - rng) <= tol_m)
     return surface
+
+
+def seen_free(
+    scan: DepthScan, sensor: Pose2, points_xy: FloatArray, margin_m: float, no_return_margin_m: float
+) -> NDArray[np.bool_]:
+    """Which points the scan sees through: the ray through the point reached at least
+    ``margin_m`` beyond it (a ray without a return reached its maximum range). Rays with an
+    invalid reading (NaN, below the minimum range) see nothing."""
+    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
+    r = scan.ranges_m[j]
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(r) & (r >= scan.min_range_m) | np.isposinf(r)
+        reach = np.where(has_return(scan, no_return_margin_m)[j], r, scan.max_range_m)
+        free: NDArray[np.bool_] = on_ray & valid & (rng < reach - margin_m)
+    return free
