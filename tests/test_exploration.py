@@ -241,3 +241,16 @@ def test_remembered_returns_go_when_the_sensor_sees_through_them_or_after_travel
         t = 0.3 + 0.2 * i
         ex.step(Odometry(t, Pose2(0.5 * i, 0.0, 0.3)), DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0))
     assert ex.obstacles_xy.shape[0] == 0
+
+
+def test_an_estimator_reset_carries_the_remembered_returns_over():
+    """The estimator jumps 10 m (reset_counter changes) while the vehicle hovers: the wall it saw
+    just before stays remembered, moved with the jump, not aged out as 10 m of travel."""
+    ex = Explorer()
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2), reset_counter=0), _wall_ahead_scan(0.0, 0.6))
+    here = Pose2(10.0, 0.0, math.pi / 2)
+    ex.step(Odometry(0.1, here, reset_counter=1))
+    ex.step(Odometry(0.2, here, reset_counter=1), _wall_ahead_scan(0.2, 0.6))  # the same wall again
+    wall = ex.obstacles_xy
+    assert wall.shape[0] == 128  # both scans' returns: the first was not aged out by the jump
+    assert np.allclose(wall[:, 1], 0.6) and np.allclose(wall[:, 0].mean(), 10.0, atol=0.05)

@@ -162,9 +162,10 @@ class Explorer:
         """Take the newest odometry (and a scan, if one arrived) and return the next setpoint."""
         if not (odom.pose.is_finite() and math.isfinite(odom.stamp_s)):
             raise CoreError("odometry must be finite")
+        last = self._last_odom
+        if last is not None and odom.reset_counter == last.reset_counter:  # a reset is no travel
+            self._travelled_m += last.pose.distance_to(odom.pose)
         self._handle_reset(odom)
-        if self._last_odom is not None:
-            self._travelled_m += self._last_odom.pose.distance_to(odom.pose)
         self.history.append(odom)
         self._last_odom = odom
         if self._pending_closures:
@@ -217,8 +218,8 @@ class Explorer:
 
     @property
     def obstacles_xy(self) -> FloatArray:
-        """The obstacle returns the safety checks used in the last step (odometry frame): the
-        recent scans' (:class:`RecentReturns`), less those the newest scan sees through."""
+        """The obstacle returns the setpoint's lead limit used in the last step (odometry frame):
+        the recent scans' (:class:`RecentReturns`), less those the newest scan sees through."""
         return self._obstacles_xy
 
     def map_counts(self) -> dict[str, int]:
