@@ -211,8 +211,9 @@ def _wall_ahead_scan(t: float, distance_m: float) -> DepthScan:
 
 def test_a_wall_that_left_the_field_of_view_still_bounds_the_vehicle_for_a_while():
     """Facing north the sensor sees a wall 0.6 m away; the vehicle turns east and sees open space.
-    The wall, now beside it and out of view, stays among the obstacles the safety checks use (the
-    crash this guards against: a door jamb beside the vehicle, seen a few seconds earlier)."""
+    The wall, now beside it and out of view, stays among the obstacles the setpoint's lead limit
+    uses (the crash this guards against: a door jamb beside the vehicle, seen a few seconds
+    earlier)."""
     ex = Explorer()
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
     east = Pose2(0.0, 0.0, -0.3)  # its field of view shares no ray with the northern one
@@ -225,6 +226,23 @@ def test_a_wall_that_left_the_field_of_view_still_bounds_the_vehicle_for_a_while
     forgetful.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
     forgetful.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
     assert forgetful.obstacles_xy.shape[0] == 0
+
+
+def test_drifting_towards_a_remembered_wall_holds_the_setpoint_short_of_it():
+    """The vehicle saw a wall 0.6 m north, turned east (open space ahead, frontiers 5 m away) and
+    drifts north at 0.5 m/s: the setpoint may lead it only as far as it can move along that motion
+    before touching the wall (0.6 m less the 0.3 m contact radius less the 0.1 m stop margin).
+    Without the memory the wall is out of view and the setpoint leads by well over a metre."""
+
+    def lead_m(params: ExplorerParams | None) -> float:
+        ex = Explorer(params)
+        ex.step(Odometry(0.0, Pose2(0.0, -0.1, math.pi / 2)), _wall_ahead_scan(0.0, 0.7))
+        ex.step(Odometry(0.8, Pose2(0.0, -0.1, -0.3)))
+        sp = ex.step(Odometry(1.0, Pose2(0.0, 0.0, -0.3)), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0)).setpoint
+        return math.hypot(sp.x_m, sp.y_m)
+
+    assert lead_m(None) == pytest.approx(0.2, abs=0.02)
+    assert lead_m(ExplorerParams(obstacle_memory_s=0.0)) > 1.0
 
 
 def test_remembered_returns_go_when_the_sensor_sees_through_them_or_after_travel():

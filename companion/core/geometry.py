@@ -101,6 +101,12 @@ def apply_each(poses: list[Pose2], points_xy: FloatArray, owner: NDArray[np.intp
     return np.column_stack((c * x - s * y + xyt[:, 0], s * x + c * y + xyt[:, 1]))
 
 
+def apply_grouped(poses: list[Pose2], groups: list[FloatArray]) -> FloatArray:
+    """Map each (N_j, 2) group of points through ``poses[j]``, all groups stacked in one array."""
+    owner = np.repeat(np.arange(len(groups)), [g.shape[0] for g in groups])
+    return apply_each(poses, np.vstack(groups).reshape(-1, 2), owner)
+
+
 def move_each(poses: list[Pose2], geometries: NDArray[np.object_]) -> NDArray[np.object_]:
     """Map ``geometries[i]`` through ``poses[i]`` (copies; one shapely call for all of them, where
     :meth:`Pose2.move` in a loop costs a call per geometry)."""
