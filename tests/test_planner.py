@@ -1,7 +1,17 @@
 """Frontier planner rules, one at a time."""
 
-from companion.core.frontiers import FrontierKey
-from companion.core.planner import FrontierPlanner, PlannerParams
+import math
+
+import numpy as np
+
+from companion.core.fov_polygon import scan_to_polygon
+from companion.core.frontiers import FrontierKey, targetable_indices
+from companion.core.geometry import Pose2
+from companion.core.local_map import LocalMap
+from companion.core.messages import DepthScan
+from companion.core.planner import FrontierPlanner, Mode, PlannerParams
+
+BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
 
 
 def test_a_frontier_found_out_of_reach_step_after_step_counts_one_try_per_cooldown():
@@ -15,3 +25,18 @@ def test_a_frontier_found_out_of_reach_step_after_step_counts_one_try_per_cooldo
     assert planner.attempts[key] == 1 and key not in planner.set_aside
     planner._failed(key, 105.5)  # tried again after the cooldown, and out of reach again
     assert planner.attempts[key] == 2 and key in planner.set_aside
+
+
+def test_a_cooling_goal_is_tried_again_from_its_own_keyframes_origin():
+    """A goal dropped as blocked cools down, but the route back to its keyframe is another way to
+    it: from that origin it is taken, not found 'out of reach' untried (a failed try counted
+    there, twice in a row, set aside frontiers that were never out of reach)."""
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    planner = FrontierPlanner()
+    keys = [FrontierKey(kf.keyframe_id, int(i)) for i in targetable_indices(kf, planner.params.min_frontier_size_m)]
+    assert keys
+    planner._cooling = {k: 105.0 for k in keys}  # all dropped as blocked a moment ago
+    decision = planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0)
+    assert decision.mode is Mode.EXPLORING and decision.goal in keys
+    assert not planner.attempts

@@ -390,7 +390,10 @@ class FrontierPlanner:
             idx = targetable_indices(kf, p.min_frontier_size_m)
             if idx.size == 0:
                 continue
-            skip = self.set_aside | self._cooling.keys()
+            # A goal dropped as blocked cools down before it is taken again, but not from its own
+            # keyframe's origin: that is another way to it, and the only one left when the
+            # route led there for it (skipping it there would count a failed try never made).
+            skip = self.set_aside if dense else self.set_aside | self._cooling.keys()
             idx = np.array([i for i in idx if FrontierKey(k, int(i)) not in skip], dtype=np.intp)
             if idx.size == 0:
                 continue
