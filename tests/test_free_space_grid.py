@@ -45,6 +45,17 @@ def test_a_door_narrower_than_the_vehicle_needs_has_no_path():
     assert reach.path_to(np.array([9.0, 1.0])) is not None  # the corridor itself is still reachable
 
 
+def test_behind_a_door_too_narrow_the_nearest_reached_place_is_in_front_of_it():
+    """The planner's approach: as near a place out of reach as the free space leads."""
+    free, walls = corridor_and_room(0.6)
+    reach = FreeSpaceGrid.build(free, walls, CLEARANCE_M).reach_from(np.array([1.0, 1.0]))
+    assert reach is not None
+    near = reach.nearest_to(np.array([6.0, 4.0]))
+    assert near is not None
+    assert abs(near[0] - 6.0) <= 0.1 and 1.4 <= near[1] < 2.0  # at the door, not through it
+    assert reach.path_to(near) is not None
+
+
 def test_obstacle_points_from_the_live_scan_block_a_path():
     free, walls = corridor_and_room(1.2)
     grid = FreeSpaceGrid.build(free, walls, CLEARANCE_M)

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from companion.core.fov_polygon import scan_to_polygon
+from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
 from companion.core.frontiers import FrontierKey, targetable_indices
 from companion.core.geometry import Pose2
 from companion.core.local_map import LocalMap
@@ -40,3 +40,33 @@ def test_a_cooling_goal_is_tried_again_from_its_own_keyframes_origin():
     decision = planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0)
     assert decision.mode is Mode.EXPLORING and decision.goal in keys
     assert not planner.attempts
+
+
+def test_a_frontier_seen_through_a_door_too_narrow_to_fly_is_approached_not_just_failed():
+    """From its keyframe's origin nothing behind a 0.34 m gap is in reach: that counts a failed
+    try, and the vehicle then goes as near as the free space leads (in front of the gap) to look
+    again, without closing the frontier it only came nearer to."""
+    ranges = 2.0 / np.cos(BEARINGS)  # a wall across the way, 2 m ahead
+    gap = (BEARINGS > 0.25) & (BEARINGS < 0.40)
+    ranges[gap] = 5.0  # seen through the gap to the sensor's range
+    polygon = scan_to_polygon(DepthScan(0.0, BEARINGS, ranges, 5.0), PolygonParams(side_frontier_spacing_m=0.0, occlusion_frontier_spacing_m=0.0))
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), polygon)
+    at_jambs = np.flatnonzero(np.hypot(*polygon.vertices_xy.T) < 3.0)
+    m.close_frontiers(kf.keyframe_id, at_jambs)  # looked at already: only the far ones are left
+    planner = FrontierPlanner()
+    decision = planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0)
+    assert decision.mode is Mode.EXPLORING
+    assert planner.goal is not None and planner.goal.approach
+    assert planner.attempts and all(n == 1 for n in planner.attempts.values())
+    gx, gy = planner.goal.local_xy
+    assert 0.8 <= gx < 2.0 - planner.params.clearance_m + 0.1  # in front of the wall, short of it
+    vertex = kf.polygon.vertices_xy[planner.goal.key.index]
+    assert np.hypot(*(vertex - (gx, gy))) <= np.hypot(*vertex) - planner.params.approach_gain_m
+    # Arrived and looked: a new view is asked for, and the frontier stays open for it to judge.
+    there = Pose2(gx, gy, planner.goal.look_local_rad)
+    assert planner.plan(m, kf.keyframe_id, there, 101.0).want_keyframe
+    key = planner.goal.key
+    planner.plan(m, kf.keyframe_id, there, 102.5)
+    assert planner.goal is None or planner.goal.key != key
+    assert kf.kinds[key.index] == VertexKind.FRONTIER

@@ -10,7 +10,7 @@ from companion.core.messages import Setpoint
 from companion.core.setpoint_lead import LeadParams, limit_lead
 
 BODY_M = 0.25
-PARAMS = LeadParams(max_lead_m=1.5, contact_margin_m=0.05, stop_margin_m=0.1)  # touching at 0.3 m
+PARAMS = LeadParams(max_lead_m=1.5, contact_margin_m=0.05, stop_margin_m=0.1, speed_margin_s=0.0)  # touching at 0.3 m
 NO_RETURNS = np.zeros((0, 2))
 
 
@@ -25,20 +25,20 @@ def lead_of(sp: Setpoint, pose: Pose2) -> float:
 
 def test_a_far_setpoint_is_brought_within_the_maximum_lead_on_its_line():
     pose = Pose2(1.0, 1.0, 0.0)
-    sp = limit_lead(Setpoint(5.0, 4.0, 0.7), pose, (0.0, 0.0), NO_RETURNS, math.inf, BODY_M, PARAMS)
+    sp = limit_lead(Setpoint(5.0, 4.0, 0.7), pose, (0.0, 0.0), NO_RETURNS, BODY_M, PARAMS)
     assert lead_of(sp, pose) == pytest.approx(1.5)
     assert math.atan2(sp.y_m - 1.0, sp.x_m - 1.0) == pytest.approx(math.atan2(3.0, 4.0))
     assert sp.yaw_rad == 0.7
     near = Setpoint(1.5, 1.2, 0.0)
-    assert limit_lead(near, pose, (0.0, 0.0), NO_RETURNS, math.inf, BODY_M, PARAMS) == near
+    assert limit_lead(near, pose, (0.0, 0.0), NO_RETURNS, BODY_M, PARAMS) == near
 
 
 def test_towards_a_wall_the_setpoint_stops_short_of_touching_it():
     pose = Pose2(0.0, 0.0, 0.0)
-    sp = limit_lead(Setpoint(3.0, 0.0, 0.0), pose, (0.0, 0.0), wall(1.0), 1.0, BODY_M, PARAMS)
+    sp = limit_lead(Setpoint(3.0, 0.0, 0.0), pose, (0.0, 0.0), wall(1.0), BODY_M, PARAMS)
     assert sp.x_m == pytest.approx(1.0 - 0.3 - 0.1)
     # Within the wall's standoff already: hold, never closer.
-    sp = limit_lead(Setpoint(3.0, 0.0, 0.0), Pose2(0.65, 0.0, 0.0), (0.0, 0.0), wall(1.0), 0.35, BODY_M, PARAMS)
+    sp = limit_lead(Setpoint(3.0, 0.0, 0.0), Pose2(0.65, 0.0, 0.0), (0.0, 0.0), wall(1.0), BODY_M, PARAMS)
     assert sp.x_m == pytest.approx(0.65)
 
 
@@ -47,8 +47,8 @@ def test_moving_fast_at_a_wall_limits_a_setpoint_elsewhere_too():
     the motion as well, so the autopilot asks for less speed."""
     pose = Pose2(0.0, 0.0, 0.0)
     sideways = Setpoint(0.0, 3.0, 0.0)
-    slow = limit_lead(sideways, pose, (0.0, 0.0), wall(1.0), 1.0, BODY_M, PARAMS)
-    fast = limit_lead(sideways, pose, (1.2, 0.0), wall(1.0), 1.0, BODY_M, PARAMS)
+    slow = limit_lead(sideways, pose, (0.0, 0.0), wall(1.0), BODY_M, PARAMS)
+    fast = limit_lead(sideways, pose, (1.2, 0.0), wall(1.0), BODY_M, PARAMS)
     assert lead_of(slow, pose) == pytest.approx(1.5)
     assert lead_of(fast, pose) == pytest.approx(1.0 - 0.3 - 0.1)
 
@@ -56,7 +56,23 @@ def test_moving_fast_at_a_wall_limits_a_setpoint_elsewhere_too():
 def test_beside_a_wall_closer_than_the_contact_radius_it_may_still_move_along_it():
     pose = Pose2(0.0, 0.0, 0.0)
     beside = np.column_stack((np.linspace(-1.0, 3.0, 41), np.full(41, 0.28)))  # 0.28 m to the left
-    along = limit_lead(Setpoint(3.0, 0.0, 0.0), pose, (0.0, 0.0), beside, 0.28, BODY_M, PARAMS)
+    along = limit_lead(Setpoint(3.0, 0.0, 0.0), pose, (0.0, 0.0), beside, BODY_M, PARAMS)
     assert lead_of(along, pose) == pytest.approx(1.5)
-    towards = limit_lead(Setpoint(0.0, 3.0, 0.0), pose, (0.0, 0.0), beside, 0.28, BODY_M, PARAMS)
+    towards = limit_lead(Setpoint(0.0, 3.0, 0.0), pose, (0.0, 0.0), beside, BODY_M, PARAMS)
     assert lead_of(towards, pose) == pytest.approx(0.0)
+
+
+def test_at_speed_a_line_passing_close_by_a_corner_counts_as_blocked():
+    """The office-3 crash: flying at 1.5 m/s on a line passing 0.31 m from a door jamb's corner
+    (just outside the 0.3 m contact radius), a small turn put the corner in the way when the
+    vehicle could no longer brake. The contact radius grows with speed, so that line is cut at
+    speed, and still free when hovering."""
+    params = LeadParams(max_lead_m=1.5, contact_margin_m=0.05, stop_margin_m=0.1, speed_margin_s=0.15)
+    pose = Pose2(0.0, 0.0, 0.0)
+    corner = np.array([[1.2, -0.31]])
+    ahead = Setpoint(3.0, 0.0, 0.0)
+    hovering = limit_lead(ahead, pose, (0.0, 0.0), corner, BODY_M, params)
+    fast = limit_lead(ahead, pose, (1.5, 0.0), corner, BODY_M, params)
+    assert lead_of(hovering, pose) == pytest.approx(1.5)
+    reach = 0.3 + 0.15 * 1.5
+    assert lead_of(fast, pose) == pytest.approx(1.2 - math.sqrt(reach**2 - 0.31**2) - 0.1)

@@ -304,8 +304,7 @@ class Explorer:
         returns = self._obstacles_xy
         vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
         body_radius_m = self.params.planner.body_radius_m
-        clearance = self.planner.clearance_now_m
-        return limit_lead(sp, pose, (float(vx), float(vy)), returns, clearance, body_radius_m, self.params.lead)
+        return limit_lead(sp, pose, (float(vx), float(vy)), returns, body_radius_m, self.params.lead)
 
     def _recent_obstacles(self, pose_at_scan: Pose2, newest: DepthScan) -> FloatArray:
         """The recent returns (odometry frame), less those the newest scan sees through (they

@@ -62,6 +62,7 @@ class PlannerParams:
     leg_margin_m: float = 0.05
     route_timeout_s: float = 30.0  # backtracking without reaching a waypoint for this long fails the target
     side_shift_m: float = 0.5  # sideways goal shift tried from a keyframe's origin
+    approach_gain_m: float = 1.0  # an approach must end at least this much nearer its frontier
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
     grid: GridParams = field(default_factory=GridParams)  # paths where a straight line is blocked
     goal_clearance_m: float = 0.3  # where a straight path ends keeps this clear, however close the start
@@ -110,6 +111,7 @@ class _Goal:
     deadline_s: float
     arrived_s: float | None = None
     path: FloatArray | None = None  # waypoints to the goal point, in the frontier keyframe's frame
+    approach: bool = False  # only as near as the free space leads, to look again from there
 
 
 @dataclass(slots=True)
@@ -125,6 +127,7 @@ class _Candidate:
     look_rad: float
     score: float
     path: FloatArray | None = None  # waypoints through free space when no straight path is clear
+    approach: bool = False  # a step nearer a frontier out of reach, not a goal that sees it
 
     @property
     def aim_xy(self) -> FloatArray:
@@ -154,7 +157,6 @@ class FrontierPlanner:
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
     closed_on_surface: int = 0  # frontiers closed because the newest scan sees a surface right there
-    clearance_now_m: float = math.inf  # the vehicle's distance to the nearest known obstacle, last plan
     # keyframe -> (map size, loop closures) when its frontiers were last closed through the graph
     _graph_checked: dict[int, tuple[int, int]] = field(default_factory=dict)
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
@@ -251,8 +253,10 @@ class FrontierPlanner:
             return Decision(Mode.EXPLORING, Target(gx, gy, look), goal.key, want_keyframe=True)
         if goal.arrived_s is not None and stamp_s - goal.arrived_s >= self.params.settle_s:
             # Looked at it from its goal and it stays open: the space is seen, the vertex is stale
-            # (its closing view is not in its neighbourhood). So are its close neighbours.
-            self._close_looked_at(local_map, frame_id, goal.key)
+            # (its closing view is not in its neighbourhood). So are its close neighbours. Not
+            # after an approach: that only came nearer, and its new view judges what is left.
+            if not goal.approach:
+                self._close_looked_at(local_map, frame_id, goal.key)
             self.goal = None
             return None
         if goal.arrived_s is None and stamp_s > goal.deadline_s:
@@ -312,7 +316,7 @@ class FrontierPlanner:
         budget = max(self.params.goal_timeout_min_s, 3.0 * dist / self.params.cruise_speed_mps)
         path = None if c.path is None else pose.apply(c.path)
         look = wrap_angle(c.look_rad + pose.yaw_rad)
-        self.goal = _Goal(c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path)
+        self.goal = _Goal(c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path, approach=c.approach)
         self._arrived_at = None
 
     def _off_surfaces(
@@ -484,7 +488,6 @@ class FrontierPlanner:
             now = float(shapely.distance(shapely.Point(here), view.obstacles))
         if self._live.shape[0]:
             now = min(now, float(np.min(np.hypot(*(self._live - here).T))))
-        self.clearance_now_m = now
         return min(self.params.clearance_m, 0.9 * now)
 
     def _accessible(self, view: LocalView, start: FloatArray, goal: FloatArray, required: float) -> bool:
@@ -556,6 +559,12 @@ class FrontierPlanner:
             self._fail_keyframe(local_map, frame_id, stamp_s)
             self._tried_in_vain = frame_id
             self.route = None
+            # Out of reach from here (seen through a door at an angle, say): before leaving, go as
+            # near as the free space leads and look again; a new view there may open the way.
+            near = self._approach(local_map, frame_id, view, here)
+            if near is not None:
+                self._commit(local_map, frame_id, near, here, stamp_s)
+                return self._fly(vehicle, near.aim_xy, near.look_rad, Mode.EXPLORING, near.key)
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         # Skip ahead to the farthest route keyframe in view that a straight path reaches.
         skip = 0
@@ -617,6 +626,36 @@ class FrontierPlanner:
         aim = points[0]
         travel = float(np.arctan2(*(aim - here)[::-1]))
         return self._fly(vehicle, aim, travel, Mode.BACKTRACKING, None)
+
+    def _approach(self, local_map: LocalMap, frame_id: int, view: LocalView, here: FloatArray) -> _Candidate | None:
+        """A step towards the keyframe's frontier (not set aside) that the free space leads
+        nearest to, when that ends at least ``approach_gain_m`` nearer it than ``here``."""
+        kf = local_map.keyframes[frame_id]
+        idx = [
+            i
+            for i in targetable_indices(kf, self.params.min_frontier_size_m)
+            if FrontierKey(frame_id, int(i)) not in self.set_aside
+        ]
+        reach = self._reach(view, here) if idx else None
+        if reach is None:
+            return None
+        best: tuple[float, int, FloatArray] | None = None
+        for i in idx:
+            v = kf.polygon.vertices_xy[i]
+            cell = reach.nearest_to(v)
+            if cell is None:
+                return None
+            left = float(np.hypot(*(v - cell)))
+            if float(np.hypot(*(v - here))) - left >= self.params.approach_gain_m and (best is None or left < best[0]):
+                best = (left, int(i), cell)
+        if best is None:
+            return None
+        _, i, cell = best
+        path = reach.path_to(cell)
+        if path is None:
+            return None
+        look = float(np.arctan2(*(kf.polygon.vertices_xy[i] - cell)[::-1]))
+        return _Candidate(FrontierKey(frame_id, i), cell, look, 0.0, path, approach=True)
 
     def _leg_points(
         self,

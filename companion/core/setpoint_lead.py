@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from companion.core.geometry import FloatArray, Pose2, free_travel_m
 from companion.core.messages import Setpoint
 
@@ -25,6 +27,10 @@ class LeadParams:
     contact_margin_m: float = 0.05  # a return this close to the body (its radius) counts as touched
     stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
     moving_mps: float = 0.1  # above this speed the motion's own direction is checked too
+    # The contact radius grows by this many seconds of speed: at speed the vehicle does not hold
+    # a line to the centimetre (a turn, drift, the autopilot's own tracking), and a corner its
+    # line passes 0.3 m from at 1.5 m/s is one it may hit; it cannot brake in time once it sees it.
+    speed_margin_s: float = 0.15
 
 
 def limit_lead(
@@ -32,25 +38,27 @@ def limit_lead(
     pose: Pose2,
     velocity_xy: tuple[float, float],
     returns_xy: FloatArray,
-    clearance_now_m: float,
     body_radius_m: float,
     params: LeadParams,
 ) -> Setpoint:
     """The setpoint moved along its line from the vehicle to at most the allowed lead (yaw kept).
 
-    ``velocity_xy`` and ``returns_xy`` (the newest scan's obstacle points) are in the setpoint's
-    frame; ``clearance_now_m`` is how close the vehicle already is to any known obstacle: closer
-    than the body radius and contact margin (drift, a tight door) it may move along or away, only
-    not closer still.
+    ``velocity_xy`` and ``returns_xy`` (the sensor's obstacle points) are in the setpoint's frame.
+    Already closer to a return than the body radius and contact margin (a tight door) the vehicle
+    may move along or away, only not closer still. Only returns count, never the map: a drifted
+    view's wall placed on the vehicle must not shrink the berth to nothing (office 2 flew into a
+    wall that way). The faster it moves, the wider a berth its line must give a return.
     """
     dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
     dist = math.hypot(dx, dy)
     lead = min(params.max_lead_m, dist)
     if returns_xy.shape[0]:
         rel = returns_xy - [pose.x_m, pose.y_m]
-        contact = min(body_radius_m + params.contact_margin_m, 0.95 * clearance_now_m)
+        speed = math.hypot(*velocity_xy)
+        reach = body_radius_m + params.contact_margin_m + params.speed_margin_s * speed
+        contact = min(reach, 0.95 * float(np.min(np.hypot(rel[:, 0], rel[:, 1]))))
         directions = [(dx, dy)]
-        if math.hypot(*velocity_xy) > params.moving_mps:
+        if speed > params.moving_mps:
             directions.append(velocity_xy)
         for direction in directions:
             lead = min(lead, max(0.0, free_travel_m(rel, direction, contact) - params.stop_margin_m))
