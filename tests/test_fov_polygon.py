@@ -72,6 +72,21 @@ def test_a_long_shadow_edge_carries_frontier_vertices_along_its_length(near_firs
     assert poly.shape.is_valid and math.isclose(poly.shape.area, single.shape.area, rel_tol=1e-6)
 
 
+def test_a_short_shadow_edge_gets_a_frontier_vertex_in_its_middle_off_the_occluder():
+    """lshape 4: a door jamb 3 m away, the room's far wall 1.1 m behind it. The vertex by the jamb
+    lies within a ray's width of the jamb's wall (a view that saw that wall closes it); the one in
+    the middle of the shadow edge keeps the room behind the door open."""
+    r = np.full(64, 4.1)
+    r[:30] = 3.0  # the jamb on the right; through the door to the far wall on the left
+    poly = scan_to_polygon(scan(r), PolygonParams(occlusion_frontier_spacing_m=1.0, side_frontier_spacing_m=0.0))
+    on_edge = [
+        float(np.hypot(*v))
+        for v, k in zip(poly.vertices_xy, poly.kinds, strict=True)
+        if k == VertexKind.FRONTIER and np.isclose(math.atan2(v[1], v[0]), BEARINGS[30])
+    ]
+    assert sorted(on_edge) == pytest.approx([3.0, 3.55])
+
+
 def test_invalid_returns_never_become_walls_at_zero():
     r = np.full(64, 3.0)
     r[10] = np.nan

@@ -49,7 +49,10 @@ def test_a_frontier_seen_through_a_door_too_narrow_to_fly_is_approached_not_just
     ranges = 2.0 / np.cos(BEARINGS)  # a wall across the way, 2 m ahead
     gap = (BEARINGS > 0.25) & (BEARINGS < 0.40)
     ranges[gap] = 5.0  # seen through the gap to the sensor's range
-    polygon = scan_to_polygon(DepthScan(0.0, BEARINGS, ranges, 5.0), PolygonParams(side_frontier_spacing_m=0.0, occlusion_frontier_spacing_m=0.0))
+    polygon = scan_to_polygon(
+        DepthScan(0.0, BEARINGS, ranges, 5.0),
+        PolygonParams(side_frontier_spacing_m=0.0, occlusion_frontier_spacing_m=0.0),
+    )
     m = LocalMap()
     kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), polygon)
     at_jambs = np.flatnonzero(np.hypot(*polygon.vertices_xy.T) < 3.0)
@@ -70,3 +73,24 @@ def test_a_frontier_seen_through_a_door_too_narrow_to_fly_is_approached_not_just
     planner.plan(m, kf.keyframe_id, there, 102.5)
     assert planner.goal is None or planner.goal.key != key
     assert kf.kinds[key.index] == VertexKind.FRONTIER
+
+
+def test_a_frontier_a_view_beyond_the_neighbourhood_saw_past_is_not_flown_to():
+    """The vehicle went round the block: a later view C saw past A's frontier ahead, but the
+    graph reaches C from A only through a view that overlaps neither, so C is not in A's
+    neighbourhood. The candidate is checked along the graph before it is taken."""
+    scan_5m = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+    scan_1m = DepthScan(0.0, BEARINGS, np.full(64, 1.0), 5.0)
+    m = LocalMap()
+    a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(scan_5m))
+    b = m.add_keyframe(1.0, Pose2(0.0, 20.0, 0.0), scan_to_polygon(scan_1m), (a.keyframe_id, Pose2(0.0, 20.0, 0.0)))
+    c_pose_in_b = Pose2(0.0, 20.0, 0.0).between(Pose2(6.0, 0.0, math.pi))
+    m.add_keyframe(2.0, Pose2(6.0, 0.0, math.pi), scan_to_polygon(scan_5m), (b.keyframe_id, c_pose_in_b))
+    assert m.neighbourhood(a.keyframe_id) == {}
+    ahead = np.flatnonzero((a.kinds == VertexKind.FRONTIER) & (np.abs(a.polygon.vertices_xy[:, 1]) < 0.5))
+    assert ahead.size  # open before the check
+    planner = FrontierPlanner()
+    decision = planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 10.0)
+    assert decision.mode is Mode.EXPLORING and decision.goal is not None
+    assert np.all(a.kinds[ahead] == VertexKind.FREE)
+    assert decision.goal.index not in ahead

@@ -118,7 +118,9 @@ def _insert_occlusions(
     The first sits at the nearer range on the farther ray, so the polygon edge from it runs along
     the farther ray (observed free) and the occluded wedge behind the nearer return stays outside.
     More follow along that edge every ``spacing_m``: a shadow edge metres long must not hinge on
-    one vertex by the occluder, which the next view around the corner closes.
+    one vertex by the occluder, which the next view around the corner closes. A shorter edge gets
+    one in its middle: the one by the occluder lies within a ray's width of the occluder's wall,
+    where a view that saw the wall closes it (lshape 4 lost a room behind a door that way).
     """
     ranges = ranges.copy()
     frontier = frontier.copy()
@@ -152,7 +154,8 @@ def _insert_occlusions(
             far_bearing = bearings[i + 1] if rising else bearings[i]
             along = [near]
             if spacing_m > 0.0:
-                along += np.arange(near + spacing_m, far - 0.5 * spacing_m, spacing_m).tolist()
+                inner = np.arange(near + spacing_m, far - 0.5 * spacing_m, spacing_m).tolist()
+                along += inner or [0.5 * (near + far)]
             for r in along if rising else along[::-1]:
                 b_out.append(float(far_bearing))
                 r_out.append(float(r))

@@ -450,7 +450,8 @@ class FrontierPlanner:
         dense = only_keyframe is not None
         candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense)
         limit = self.params.max_candidates_checked * (8 if dense else 1)
-        for c in candidates[:limit]:
+        candidates = [c for c in candidates[:limit] if self._open_through_graph(local_map, c.key)]
+        for c in candidates:
             if self._accessible(view, here, c.goal_xy, required):
                 return c
         # No straight path: look for paths through the known free space (a frontier seen through a
@@ -461,13 +462,19 @@ class FrontierPlanner:
             return None
         reach = self._reach(view, here)
         if reach is not None:
-            for c in candidates[:limit]:
+            for c in candidates:
                 path = reach.path_to(c.goal_xy)
                 if path is not None:
                     c.path = path
                     return c
         self._grid_tried = tried
         return None
+
+    def _open_through_graph(self, local_map: LocalMap, key: FrontierKey) -> bool:
+        """Still open once views along the pose graph are checked too: a view that saw beyond it
+        may not overlap the current one (the vehicle has been round the block since)."""
+        self._has_live_targets(local_map, key.keyframe_id)
+        return bool(local_map.keyframes[key.keyframe_id].kinds[key.index] == VertexKind.FRONTIER)
 
     def _reach(self, view: LocalView, here: FloatArray) -> Reach | None:
         """The wavefront through the view's free space (with the newest returns) from ``here``."""
