@@ -11,8 +11,10 @@ Each step, in the frame of the current keyframe:
    that path as waypoints, each expressed relative to the current keyframe.
 
 A goal point stands off from its frontier vertex into known free space: first on the frontier's
-normal (the thesis's "normal point"), else back along the ray that observed it. Frontiers that stay
-open after ``max_attempts`` visits, or stay out of reach, are set aside so exploration always ends.
+normal (the thesis's "normal point"), else back along the ray that observed it. Frontiers out of
+reach even from their own keyframe's origin are approached (as near as the known free space leads,
+for a new view there). Frontiers that stay open after ``max_attempts`` visits, or stay out of reach,
+are set aside so exploration always ends.
 """
 
 from __future__ import annotations
