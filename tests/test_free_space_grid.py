@@ -50,8 +50,9 @@ def test_behind_a_door_too_narrow_the_nearest_reached_place_is_in_front_of_it():
     free, walls = corridor_and_room(0.6)
     reach = FreeSpaceGrid.build(free, walls, CLEARANCE_M).reach_from(np.array([1.0, 1.0]))
     assert reach is not None
-    near = reach.nearest_to(np.array([6.0, 4.0]))
-    assert near is not None
+    nearest = reach.nearest_to(np.array([[6.0, 4.0]]))
+    assert nearest is not None and nearest.shape == (1, 2)
+    near = nearest[0]
     assert abs(near[0] - 6.0) <= 0.1 and 1.4 <= near[1] < 2.0  # at the door, not through it
     assert reach.path_to(near) is not None
 

@@ -252,15 +252,16 @@ class Reach:
             pts[-1] = np.asarray(goal_xy, dtype=np.float64)
         return self._centre(self._shorten(pts))
 
-    def nearest_to(self, target_xy: FloatArray) -> FloatArray | None:
-        """The centre of the reached cell nearest ``target_xy`` (None when nothing is reached):
-        as close to a place out of reach as the free space leads."""
+    def nearest_to(self, targets_xy: FloatArray) -> FloatArray | None:
+        """For each target (N, 2), the centre of the reached cell nearest it (None when nothing
+        is reached): as close to places out of reach as the free space leads."""
         cells = np.argwhere(self.steps != _UNREACHED)
         if cells.shape[0] == 0:
             return None
         centres = self.grid.origin_xy + cells[:, ::-1] * self.grid.cell_m
-        k = int(np.argmin(np.hypot(*(centres - np.asarray(target_xy)).T)))
-        return np.asarray(centres[k], dtype=np.float64)
+        t = np.asarray(targets_xy, dtype=np.float64).reshape(-1, 2)
+        d = np.hypot(centres[None, :, 0] - t[:, None, 0], centres[None, :, 1] - t[:, None, 1])
+        return np.asarray(centres[np.argmin(d, axis=1)], dtype=np.float64)
 
     def _shorten(self, pts: list[FloatArray]) -> FloatArray:
         """Greedy line of sight: from where the path stands, jump to the farthest point it sees."""

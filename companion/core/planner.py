@@ -475,7 +475,7 @@ class FrontierPlanner:
     def _open_through_graph(self, local_map: LocalMap, key: FrontierKey) -> bool:
         """Still open once views along the pose graph are checked too: a view that saw beyond it
         may not overlap the current one (the vehicle has been round the block since)."""
-        self._has_live_targets(local_map, key.keyframe_id)
+        self._check_through_graph(local_map, key.keyframe_id)
         return bool(local_map.keyframes[key.keyframe_id].kinds[key.index] == VertexKind.FRONTIER)
 
     def _reach(self, view: LocalView, here: FloatArray) -> Reach | None:
@@ -639,32 +639,25 @@ class FrontierPlanner:
     def _approach(self, local_map: LocalMap, frame_id: int, view: LocalView, here: FloatArray) -> _Candidate | None:
         """A step towards the keyframe's frontier (not set aside) that the free space leads
         nearest to, when that ends at least ``approach_gain_m`` nearer it than ``here``."""
-        kf = local_map.keyframes[frame_id]
-        idx = [
-            i
-            for i in targetable_indices(kf, self.params.min_frontier_size_m)
-            if FrontierKey(frame_id, int(i)) not in self.set_aside
-        ]
+        idx = self._targets(local_map, frame_id)
         reach = self._reach(view, here) if idx else None
         if reach is None:
             return None
-        best: tuple[float, int, FloatArray] | None = None
-        for i in idx:
-            v = kf.polygon.vertices_xy[i]
-            cell = reach.nearest_to(v)
-            if cell is None:
-                return None
-            left = float(np.hypot(*(v - cell)))
-            if float(np.hypot(*(v - here))) - left >= self.params.approach_gain_m and (best is None or left < best[0]):
-                best = (left, int(i), cell)
-        if best is None:
+        v = local_map.keyframes[frame_id].polygon.vertices_xy[idx]
+        cells = reach.nearest_to(v)
+        if cells is None:
             return None
-        _, i, cell = best
-        path = reach.path_to(cell)
+        left = np.hypot(*(v - cells).T)
+        gain = np.hypot(*(v - here).T) - left
+        ok = np.flatnonzero(gain >= self.params.approach_gain_m)
+        if ok.size == 0:
+            return None
+        k = int(ok[np.argmin(left[ok])])
+        path = reach.path_to(cells[k])
         if path is None:
             return None
-        look = float(np.arctan2(*(kf.polygon.vertices_xy[i] - cell)[::-1]))
-        return _Candidate(FrontierKey(frame_id, i), cell, look, 0.0, path, approach=True)
+        look = float(np.arctan2(*(v[k] - cells[k])[::-1]))
+        return _Candidate(FrontierKey(frame_id, idx[k]), cells[k], look, 0.0, path, approach=True)
 
     def _leg_points(
         self,
@@ -709,16 +702,25 @@ class FrontierPlanner:
         for i in targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m):
             self._failed(FrontierKey(keyframe_id, int(i)), stamp_s)
 
+    def _targets(self, local_map: LocalMap, keyframe_id: int) -> list[int]:
+        """A keyframe's open frontier vertices worth a flight and not set aside."""
+        idx = targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m)
+        return [int(i) for i in idx if FrontierKey(keyframe_id, int(i)) not in self.set_aside]
+
     def _has_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
-        kf = local_map.keyframes[keyframe_id]
-        idx = targetable_indices(kf, self.params.min_frontier_size_m)
-        return any(FrontierKey(keyframe_id, int(i)) not in self.set_aside for i in idx)
+        return bool(self._targets(local_map, keyframe_id))
 
     def _has_live_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
-        """Open frontiers worth a flight once views along the pose graph are checked too (once
-        per keyframe and map size: a stale frontier costs a look, not a flight)."""
+        """Open frontiers worth a flight once views along the pose graph are checked too (a stale
+        frontier costs a look, not a flight)."""
         if not self._has_targets(local_map, keyframe_id):
             return False
+        self._check_through_graph(local_map, keyframe_id)
+        return self._has_targets(local_map, keyframe_id)
+
+    def _check_through_graph(self, local_map: LocalMap, keyframe_id: int) -> None:
+        """Eq. 2.15 for a keyframe's frontiers against the views along the pose graph, once per
+        keyframe and map size."""
         now = (len(local_map), local_map.loop_closures)
         before = self._graph_checked.get(keyframe_id)
         if before != now:
@@ -727,7 +729,6 @@ class FrontierPlanner:
             # anything: a new keyframe hangs off the graph by one edge and moves no old path.
             since = before[0] if before is not None and before[1] == now[1] else 0
             local_map.close_through_graph(keyframe_id, since_id=since)
-        return self._has_targets(local_map, keyframe_id)
 
     def _find_route(self, local_map: LocalMap, frame_id: int, target_id: int | None = None) -> _Route | None:
         """Fewest-hop route to ``target_id`` (default: the nearest keyframe with open frontiers)
