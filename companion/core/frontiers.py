@@ -32,29 +32,37 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     if is_open.all():
         sizes[:] = edge_len.sum()
         return sizes
-    start = int(np.flatnonzero(~is_open)[0])  # walk the ring from a closed vertex
-    i = 0
-    while i < n:
-        j = (start + i) % n
-        if not is_open[j]:
-            i += 1
-            continue
-        members = []
-        while i < n and is_open[(start + i) % n]:
-            members.append((start + i) % n)
-            i += 1
-        # Edges inside the run, and half of those into and out of it (they end at a vertex
-        # that is not open): a lone open vertex between walls or seen space spans half of each.
-        inside = sum(edge_len[m] for m in members[:-1])
-        total = 0.5 * (edge_len[(members[0] - 1) % n] + edge_len[members[-1]]) + inside
-        sizes[members] = total
+    # Walk the ring from a closed vertex, so no run wraps round; runs numbered 1, 2, ... in it.
+    order = np.roll(np.arange(n), -int(np.flatnonzero(~is_open)[0]))
+    run_open = is_open[order]
+    run_len = edge_len[order]
+    first = run_open & ~np.roll(run_open, 1)
+    run = np.cumsum(first) * run_open
+    last = run_open & ~np.roll(run_open, -1)
+    # Edges inside the run, and half of those into and out of it (they end at a vertex that is
+    # not open): a lone open vertex between walls or seen space spans half of each.
+    count = int(run.max()) + 1
+    inside = np.bincount(run[run_open & ~last], run_len[run_open & ~last], minlength=count)
+    into = np.zeros(count)
+    into[run[first]] = np.roll(run_len, 1)[first]
+    out = np.zeros(count)
+    out[run[last]] = run_len[last]
+    total = 0.5 * (into + out) + inside
+    sizes[order[run_open]] = total[run[run_open]]
     return sizes
 
 
 def targetable_indices(kf: Keyframe, min_size_m: float) -> NDArray[np.intp]:
-    """Open frontier vertices of a keyframe whose run is at least ``min_size_m`` long."""
+    """Open frontier vertices of a keyframe whose run is at least ``min_size_m`` long (memoised
+    on the keyframe until a vertex closes: the planner asks for every keyframe it walks past)."""
+    memo = kf.targetable_memo
+    if memo is not None and memo[0] == kf.version and memo[1] == min_size_m:
+        return memo[2]
     sizes = run_sizes_m(kf.kinds, kf.polygon.vertices_xy)
-    return np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (sizes >= min_size_m))
+    idx = np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (sizes >= min_size_m))
+    idx.flags.writeable = False  # shared by every caller until the next change
+    kf.targetable_memo = (kf.version, min_size_m, idx)
+    return idx
 
 
 @dataclass(frozen=True, slots=True)

@@ -54,14 +54,26 @@ class Keyframe:
     kinds: NDArray[np.int8] = field(init=False)
     radius_m: float = field(init=False)
     walls: FloatArray = field(init=False)  # the polygon's obstacle edges (M, 2, 2), computed once
+    corners_xy: FloatArray = field(init=False)  # the polygon shape's own coordinates (N, 2)
+    version: int = field(init=False, default=0)  # bumped by every :meth:`close`
+    # (version, min size, indices): the open frontier vertices worth a flight, see frontiers.py
+    targetable_memo: tuple[int, float, NDArray[np.intp]] | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         self.kinds = self.polygon.kinds.copy()
         self.radius_m = float(np.max(np.linalg.norm(self.polygon.vertices_xy, axis=1)))
         self.walls = self.polygon.obstacle_segments()
+        self.corners_xy = shapely.get_coordinates(self.polygon.shape)
 
     def open_frontier_indices(self) -> NDArray[np.intp]:
         return np.flatnonzero(self.kinds == VertexKind.FRONTIER)
+
+    def close(self, indices: NDArray[np.intp]) -> None:
+        """Type these frontier vertices free (the only change a vertex ever sees: frontiers
+        close, nothing reopens), and count the change so memos of the open set know."""
+        if indices.size:
+            self.kinds[indices] = VertexKind.FREE
+            self.version += 1
 
     def beyond_points(self, indices: NDArray[np.intp], offset_m: float) -> FloatArray:
         """Points just outside the polygon at the given vertices, in this keyframe's frame."""
@@ -176,7 +188,7 @@ class LocalMap:
         pose = view.poses.get(keyframe_id) or self.pose_in(frame_id, keyframe_id)
         pts = pose.apply(kf.beyond_points(indices, self.params.closing_offset_m))
         seen: NDArray[np.bool_] = shapely.contains_xy(view.grown, pts[:, 0], pts[:, 1])
-        kf.kinds[indices[seen]] = VertexKind.FREE
+        kf.close(indices[seen])
         return seen
 
     def close_through_graph(self, keyframe_id: int, since_id: int = 0) -> int:
@@ -210,13 +222,13 @@ class LocalMap:
         shapes = np.array([self.keyframes[int(k)].polygon.shape for k in ids], dtype=object)
         still_open = ~shapely.contains_xy(shapes[:, None], x, y).any(axis=0)
         closed = idx[~still_open]
-        kf.kinds[closed] = VertexKind.FREE
+        kf.close(closed)
         return int(closed.size)
 
     def close_frontiers(self, keyframe_id: int, indices: NDArray[np.intp]) -> None:
         """Type frontier vertices free: looked at, nothing beyond them to explore."""
         kf = self.keyframes[keyframe_id]
-        kf.kinds[indices[kf.kinds[indices] == VertexKind.FRONTIER]] = VertexKind.FREE
+        kf.close(indices[kf.kinds[indices] == VertexKind.FRONTIER])
 
     def open_frontier_count(self) -> int:
         return int(sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values()))
@@ -238,6 +250,11 @@ class LocalMap:
             other = self.keyframes[other_id]
             if math.hypot(pose.x_m, pose.y_m) > kf.radius_m + other.radius_m:
                 return False
+            # A corner of the other view inside this one settles it without building the moved
+            # polygon (most neighbours overlap a lot); the exact test only for the rest.
+            corners = pose.apply(other.corners_xy)
+            if shapely.contains_xy(shape, corners[:, 0], corners[:, 1]).any():
+                return True
             return bool(shape.intersects(pose.move(other.polygon.shape)))
 
         return {v.keyframe_id: v.pose_in_start for v in self.graph.walk(kf_id, overlaps) if v.keyframe_id != kf_id}
@@ -279,7 +296,7 @@ class LocalMap:
         own = kf.open_frontier_indices()
         if own.size:
             theirs_walls = view.walls_xy[own_walls.shape[0] :]
-            kf.kinds[own[_near(kf.polygon.vertices_xy[own], theirs_walls, snap)]] = VertexKind.FREE
+            kf.close(own[_near(kf.polygon.vertices_xy[own], theirs_walls, snap)])
         if own_walls.shape[0] == 0:
             return
         poses = [pose for k, pose in view.poses.items() if k != kf_id]
@@ -296,7 +313,7 @@ def _free_where(kfs: list[Keyframe], indices: list[NDArray[np.intp]], hit: NDArr
     entries one after another) is set."""
     start = 0
     for kf, i in zip(kfs, indices, strict=True):
-        kf.kinds[i[hit[start : start + i.size]]] = VertexKind.FREE
+        kf.close(i[hit[start : start + i.size]])
         start += i.size
 
 

@@ -384,23 +384,28 @@ class FrontierPlanner:
         here: FloatArray,
         only_keyframe: int | None = None,
         dense: bool = False,
+        limit: int | None = None,
     ) -> list[_Candidate]:
+        """Goal candidates for the open frontiers in view (of one keyframe only, if given), best
+        first (least change of heading, then nearest), inside known free space; at most ``limit``."""
         p = self.params
-        keys: list[FrontierKey] = []
+        key_ids: list[NDArray[np.intp]] = []  # keyframe id and vertex index of each goal
+        key_idx: list[NDArray[np.intp]] = []
         goals: list[FloatArray] = []
         looks: list[FloatArray] = []
+        # A goal dropped as blocked cools down before it is taken again, but not from its own
+        # keyframe's origin: that is another way to it, and the only one left when the route
+        # led there for it (skipping it there would count a failed try never made).
+        skip: dict[int, list[int]] = {}
+        for key in self.set_aside if dense else self.set_aside | self._cooling.keys():
+            skip.setdefault(key.keyframe_id, []).append(key.index)
         for k, pose in view.poses.items():
             if only_keyframe is not None and k != only_keyframe:
                 continue
             kf = local_map.keyframes[k]
             idx = targetable_indices(kf, p.min_frontier_size_m)
-            if idx.size == 0:
-                continue
-            # A goal dropped as blocked cools down before it is taken again, but not from its own
-            # keyframe's origin: that is another way to it, and the only one left when the
-            # route led there for it (skipping it there would count a failed try never made).
-            skip = self.set_aside if dense else self.set_aside | self._cooling.keys()
-            idx = np.array([i for i in idx if FrontierKey(k, int(i)) not in skip], dtype=np.intp)
+            if k in skip and idx.size:
+                idx = idx[~np.isin(idx, skip[k])]
             if idx.size == 0:
                 continue
             idx = self._off_surfaces(local_map, k, pose, idx)
@@ -421,11 +426,13 @@ class FrontierPlanner:
                 for shift in (-p.side_shift_m, p.side_shift_m):
                     for back in (p.standoff_m, 1.5 * p.standoff_m):
                         variants.append(v - back * n + shift * side)
+            look = np.arctan2(*pose.rotate(n)[:, ::-1].T)
             for pts in variants:
                 goals.append(pose.apply(pts))
-                looks.append(np.arctan2(*pose.rotate(n)[:, ::-1].T))
-                keys.extend(FrontierKey(k, int(i)) for i in idx)
-        if not keys:
+                looks.append(look)
+                key_ids.append(np.full(idx.size, k, dtype=np.intp))
+                key_idx.append(idx)
+        if not goals:
             return []
         g = np.vstack(goals)
         look = np.concatenate(looks)
@@ -437,7 +444,12 @@ class FrontierPlanner:
         score = change + p.distance_weight_rad_per_m * dist
         inside = shapely.contains_xy(view.grown, g[:, 0], g[:, 1])
         order = np.argsort(score, kind="stable")
-        return [_Candidate(keys[i], g[i], float(look[i]), float(score[i])) for i in order if inside[i]]
+        order = order[inside[order]][:limit]
+        ids, ind = np.concatenate(key_ids)[order], np.concatenate(key_idx)[order]
+        return [
+            _Candidate(FrontierKey(int(k), int(i)), g[j], float(look[j]), float(score[j]))
+            for k, i, j in zip(ids, ind, order, strict=True)
+        ]
 
     def _select_local(
         self,
@@ -450,9 +462,9 @@ class FrontierPlanner:
         only_keyframe: int | None = None,
     ) -> _Candidate | None:
         dense = only_keyframe is not None
-        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense)
         limit = self.params.max_candidates_checked * (8 if dense else 1)
-        candidates = [c for c in candidates[:limit] if self._open_through_graph(local_map, c.key)]
+        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense, limit)
+        candidates = [c for c in candidates if self._open_through_graph(local_map, c.key)]
         for c in candidates:
             if self._accessible(view, here, c.goal_xy, required):
                 return c
@@ -740,7 +752,7 @@ class FrontierPlanner:
         # first reachable target wait until they are the nearest.
         # The keyframe just tried in vain from its origin goes last: its next try should come
         # after the others (a blocked goal's cooldown over), not at once from the same spot.
-        order = [v.keyframe_id for v in local_map.graph.walk(frame_id) if v.keyframe_id != self._tried_in_vain]
+        order = [k for k in local_map.graph.order_from(frame_id) if k != self._tried_in_vain]
         if self._tried_in_vain in local_map.keyframes:
             order.append(self._tried_in_vain)
         targets = False

@@ -8,6 +8,7 @@ edge, and every query composes relative transforms along the graph.
 from __future__ import annotations
 
 import itertools
+import math
 from collections import deque
 from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
@@ -60,9 +61,9 @@ class _ReachedCache:
     edges_seen: int  # how many of the graph's edges this covers
     index: dict[int, int] = field(default_factory=dict)  # keyframe id -> row
     hops: list[int] = field(default_factory=list)
-    poses: list[Pose2] = field(default_factory=list)
+    poses: list[tuple[float, float, float]] = field(default_factory=list)  # x_m, y_m, yaw_rad
 
-    def add(self, keyframe_id: int, hops: int, pose: Pose2) -> None:
+    def add(self, keyframe_id: int, hops: int, pose: tuple[float, float, float]) -> None:
         self.index[keyframe_id] = len(self.hops)
         self.hops.append(hops)
         self.poses.append(pose)
@@ -135,6 +136,19 @@ class PoseGraph:
                 if accept is None or accept(nbr, pose):
                     queue.append(Visit(nbr, visit.hops + 1, pose))
 
+    def order_from(self, start_id: int) -> list[int]:
+        """Every keyframe connected to ``start_id``, nearest (in hops) first, in :meth:`walk`'s
+        order, without composing a pose for each."""
+        if start_id not in self._adjacency:
+            raise GraphError(f"keyframe {start_id} is not in the graph")
+        order, seen = [start_id], {start_id}
+        for kf_id in order:  # grows as the walk goes: a breadth-first queue
+            for nbr, _ in self._adjacency[kf_id]:
+                if nbr not in seen:
+                    seen.add(nbr)
+                    order.append(nbr)
+        return order
+
     def reached(self, start_id: int) -> Reached:
         """What :meth:`walk` from ``start_id`` reaches, as arrays. Kept per start, and extended
         (not walked again) while the graph only grows by new keyframes hung on by one edge: a
@@ -142,18 +156,40 @@ class PoseGraph:
         edge (a loop closure) makes the next call walk afresh."""
         cache = self._reached.pop(start_id, None)
         if cache is None or not self._extend(cache):
-            cache = _ReachedCache(len(self._edges))
-            for visit in self.walk(start_id):
-                cache.add(visit.keyframe_id, visit.hops, visit.pose_in_start)
+            cache = self._walk_all(start_id)
         self._reached[start_id] = cache  # newest last: the oldest go first
         while len(self._reached) > self.max_cached_walks:
             del self._reached[next(iter(self._reached))]
-        poses = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in cache.poses], dtype=np.float64)
         return Reached(
             np.fromiter(cache.index, dtype=np.intp, count=len(cache.index)),
             np.array(cache.hops, dtype=np.intp),
-            poses.reshape(-1, 3),
+            np.array(cache.poses, dtype=np.float64).reshape(-1, 3),
         )
+
+    def _walk_all(self, start_id: int) -> _ReachedCache:
+        """:meth:`walk` without a filter, on plain floats (no object per keyframe): the same
+        arithmetic as :meth:`Pose2.compose`, so the same poses to the last bit, several times
+        faster. Every loop closure makes the planner's graph checks walk afresh."""
+        if start_id not in self._adjacency:
+            raise GraphError(f"keyframe {start_id} is not in the graph")
+        cache = _ReachedCache(len(self._edges))
+        cache.add(start_id, 0, (0.0, 0.0, 0.0))
+        index, hops, poses, adjacency = cache.index, cache.hops, cache.poses, self._adjacency
+        order = [start_id]
+        cos, sin, pi, tau = math.cos, math.sin, math.pi, 2.0 * math.pi
+        for row, kf_id in enumerate(order):  # grows as the walk goes: a breadth-first queue
+            x, y, yaw = poses[row]
+            c, s = cos(yaw), sin(yaw)
+            h = hops[row] + 1
+            for nbr, rel in adjacency[kf_id]:
+                if nbr in index:
+                    continue
+                index[nbr] = len(order)
+                order.append(nbr)
+                hops.append(h)
+                rx, ry = rel.x_m, rel.y_m
+                poses.append((x + c * rx - s * ry, y + s * rx + c * ry, (yaw + rel.yaw_rad + pi) % tau - pi))
+        return cache
 
     def _extend(self, cache: _ReachedCache) -> bool:
         """Add the leaves hung on since ``cache`` was made; False when an edge did more."""
@@ -169,7 +205,8 @@ class PoseGraph:
             if len(self._adjacency[leaf]) != 1:
                 return False  # not a leaf: it may bring others along
             row = cache.index[parent]
-            cache.add(leaf, cache.hops[row] + 1, cache.poses[row].compose(rel))
+            leaf_pose = Pose2(*cache.poses[row]).compose(rel)
+            cache.add(leaf, cache.hops[row] + 1, (leaf_pose.x_m, leaf_pose.y_m, leaf_pose.yaw_rad))
         cache.edges_seen = len(self._edges)
         return True
 
