@@ -120,12 +120,20 @@ def test_explorer_turns_a_loop_closure_into_a_graph_edge():
     assert len(ex.map) == 6
     edges = len(ex.map.graph.edges)
     ex.add_loop_closure(LoopClosure(0.0, 5.0, Pose2(6.0, 0.1, 0.0)))
+    assert len(ex.map.graph.edges) == edges  # queued: the next step joins it, after its plan
+    ex.step(Odometry(5.05, Pose2(6.0, 0.0, 0.0)))
     assert len(ex.map.graph.edges) == edges + 1
     assert ex.map.loop_closures == 1
-    # A closure from the future waits for odometry to reach it, then applies.
+    # A closure from the future waits for odometry to reach it; then it waits for a step that
+    # adds no keyframe (one map change per step).
     ex.add_loop_closure(LoopClosure(1.0, 6.0, Pose2(6.0, 0.0, 0.0)))
+    ex.step(Odometry(5.1, Pose2(6.0, 0.0, 0.0)))
     assert ex.map.loop_closures == 1
-    ex.step(Odometry(6.0, Pose2(7.2, 0.0, 0.0)), scan(6.0))
+    keyframes = len(ex.map)
+    result = ex.step(Odometry(6.0, Pose2(7.2, 0.0, 0.0)), scan(6.0))
+    assert result.keyframe_added and len(ex.map) == keyframes + 1
+    assert ex.map.loop_closures == 1
+    ex.step(Odometry(6.1, Pose2(7.2, 0.0, 0.0)))
     assert ex.map.loop_closures == 2
 
 
@@ -144,6 +152,7 @@ def test_a_loop_closure_joins_the_keyframe_whose_view_holds_the_moment_not_merel
     turned = next(k for k, s in stamps.items() if s == 3.0)
     east = next(k for k, s in stamps.items() if s == 2.0)
     ex.add_loop_closure(LoopClosure(2.9, 5.0, Pose2(0.1, 2.4, math.pi / 2)))
+    ex.step(Odometry(5.1, Pose2(3.6, 2.4, math.pi / 2)))
     closure = [e for e in ex.map.graph.edges if e.kind is EdgeType.LOOP_CLOSURE]
     assert len(closure) == 1
     latest = next(k for k, s in stamps.items() if s == 5.0)

@@ -153,6 +153,7 @@ class Explorer:
         self._recent = RecentReturns(self.params.obstacle_memory_s, self.params.obstacle_memory_m)
         self._travelled_m = 0.0  # odometry path length, to age the recent returns by
         self._obstacles_xy: FloatArray = np.zeros((0, 2))  # recent returns for this step, odometry frame
+        self._keyframe_stamps: tuple[list[float], list[int]] = ([], [])  # sorted by stamp, for closures
 
     @property
     def mode(self) -> Mode:
@@ -168,15 +169,14 @@ class Explorer:
         self._handle_reset(odom)
         self.history.append(odom)
         self._last_odom = odom
-        if self._pending_closures:
-            self._apply_pending_closures()
         added = False
         if scan is not None:
             returns = _returns_xy(scan, self.params.polygon.frontier_range_tolerance_m)
             pose_at_scan = self.history.at(scan.stamp_s) or odom.pose
             self._live = (pose_at_scan, returns, scan)
             self._recent.add(scan.stamp_s, self._travelled_m, pose_at_scan.apply(returns))
-            added = self._maybe_add_keyframe(scan, odom)
+            if self.current_id is None:  # the first view: there is nothing to plan on before it
+                added = self._maybe_add_keyframe(scan, odom)
         if self.current_id is None:
             hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
             decision = Decision(Mode.EXPLORING, Target(hold.x_m, hold.y_m, hold.yaw_rad))
@@ -214,6 +214,14 @@ class Explorer:
             self._want_keyframe = True
         sp = self._within_lead(sp, odom.pose, velocity)
         self._last_mode = decision.mode
+        # Then at most one change to the map, which the next step plans on: a due keyframe, else
+        # the queued loop closures. Each costs several milliseconds, and so does planning on a
+        # changed map; spread over two steps, no step holds the control loop up for all of it.
+        if not added:
+            if scan is not None and self._maybe_add_keyframe(scan, odom):
+                added = True
+            elif self._pending_closures:
+                self._apply_pending_closures()
         return StepResult(sp, decision.mode, added, decision)
 
     @property
@@ -234,9 +242,9 @@ class Explorer:
         }
 
     def add_loop_closure(self, closure: LoopClosure) -> None:
-        """Queue a SLAM loop closure; it joins the graph once odometry covers both its moments."""
+        """Queue a SLAM loop closure: a step joins it to the graph once odometry covers both its
+        moments (after that step's plan, and not in a step that adds a keyframe)."""
         self._pending_closures.append(closure)
-        self._apply_pending_closures()
 
     def _apply_pending_closures(self) -> None:
         newest = self.history.newest_stamp()
@@ -321,7 +329,10 @@ class Explorer:
     def _keyframe_near(self, stamp_s: float, pose: Pose2, gap_s: float) -> int | None:
         """The keyframe nearest in time to ``stamp_s`` (within ``gap_s``) whose view holds
         ``pose``'s position, else the nearest in time. Odometry spans a few seconds here only."""
-        near = sorted((abs(kf.stamp_s - stamp_s), k) for k, kf in self.map.keyframes.items())
+        stamps, ids = self._keyframe_stamps
+        lo = bisect.bisect_left(stamps, stamp_s - gap_s - 1e-6)
+        hi = bisect.bisect_right(stamps, stamp_s + gap_s + 1e-6)
+        near = sorted((abs(stamps[i] - stamp_s), ids[i]) for i in range(lo, hi))
         near = [(d, k) for d, k in near if d <= gap_s]
         for _, k in near:
             kf = self.map.keyframes[k]
@@ -349,6 +360,9 @@ class Explorer:
             return False
         parent = None if self.current_id is None else (self.current_id, self.anchor.between(pose))
         kf = self.map.add_keyframe(scan.stamp_s, pose, polygon, parent)
+        at = bisect.bisect_right(self._keyframe_stamps[0], kf.stamp_s)
+        self._keyframe_stamps[0].insert(at, kf.stamp_s)
+        self._keyframe_stamps[1].insert(at, kf.keyframe_id)
         self.current_id = kf.keyframe_id
         self.anchor = pose
         self._want_keyframe = False

@@ -51,6 +51,18 @@ def _dilate(mask: NDArray[np.bool_], offsets: list[tuple[int, int]]) -> NDArray[
     return out
 
 
+def _dilate_square(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """:func:`_dilate` by the 8 neighbours, as two passes of 3 cells (rows, then columns):
+    the same cells in half the array operations (the wavefront runs it once per step)."""
+    rows = mask.copy()
+    rows[:, 1:] |= mask[:, :-1]
+    rows[:, :-1] |= mask[:, 1:]
+    out = rows.copy()
+    out[1:, :] |= rows[:-1, :]
+    out[:-1, :] |= rows[1:, :]
+    return out
+
+
 _NEIGHBOURS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 _CROSS = [(-1, 0), (0, -1), (0, 1), (1, 0)]
 
@@ -142,7 +154,7 @@ class FreeSpaceGrid:
         step = 0
         while front.any():
             step += 1
-            nxt = _dilate(front, _NEIGHBOURS) & self.free & ~visited
+            nxt = _dilate_square(front) & self.free & ~visited
             dist[nxt] = step
             visited |= nxt
             front = nxt
@@ -308,5 +320,9 @@ def _sample_segments(segments: FloatArray, spacing_m: float) -> FloatArray:
     n = np.maximum(1, np.ceil(np.hypot(*(b - a).T) / spacing_m).astype(np.intp))
     reps = n + 1
     seg = np.repeat(np.arange(segments.shape[0]), reps)
-    t = np.concatenate([np.linspace(0.0, 1.0, k) for k in reps])
-    return a[seg] + t[:, None] * (b[seg] - a[seg])
+    # np.linspace(0, 1, n + 1) for every segment at once, to the bit: i * (1 / n), the last 1.
+    first = np.cumsum(reps) - reps
+    t = (np.arange(seg.size) - first[seg]) * (1.0 / n)[seg]
+    t[first + n] = 1.0
+    points: FloatArray = a[seg] + t[:, None] * (b[seg] - a[seg])
+    return points

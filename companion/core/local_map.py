@@ -12,7 +12,6 @@ newer keyframe; no vertex is ever moved.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,6 +57,7 @@ class Keyframe:
     version: int = field(init=False, default=0)  # bumped by every :meth:`close`
     # (version, min size, indices): the open frontier vertices worth a flight, see frontiers.py
     targetable_memo: tuple[int, float, NDArray[np.intp]] | None = field(init=False, default=None)
+    open_memo: tuple[int, NDArray[np.intp]] | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         self.kinds = self.polygon.kinds.copy()
@@ -66,7 +66,13 @@ class Keyframe:
         self.corners_xy = shapely.get_coordinates(self.polygon.shape)
 
     def open_frontier_indices(self) -> NDArray[np.intp]:
-        return np.flatnonzero(self.kinds == VertexKind.FRONTIER)
+        """The open frontier vertices (read-only, memoised until the next :meth:`close`)."""
+        memo = self.open_memo
+        if memo is None or memo[0] != self.version:
+            idx = np.flatnonzero(self.kinds == VertexKind.FRONTIER)
+            idx.flags.writeable = False
+            memo = self.open_memo = (self.version, idx)
+        return memo[1]
 
     def close(self, indices: NDArray[np.intp]) -> None:
         """Type these frontier vertices free (the only change a vertex ever sees: frontiers
@@ -92,9 +98,38 @@ class LocalView:
 
     keyframe_id: int
     poses: dict[int, Pose2]  # pose of each neighbour (and itself) in this frame
-    grown: shapely.Geometry  # union of the neighbourhood's polygons (known free space)
+    shapes: NDArray[np.object_]  # the neighbourhood's polygons in this frame, in ``poses`` order
     walls_xy: FloatArray  # every obstacle edge seen in the neighbourhood (M, 2, 2), its own first
     obstacles: shapely.MultiLineString  # the same edges as one geometry, for distance queries
+    _grown: shapely.Geometry | None = None
+
+    @property
+    def grown(self) -> shapely.Geometry:
+        """The union of the neighbourhood's polygons (known free space), built on first use: the
+        union is the dearest part of a view, and only paths that no single view covers need it
+        (see :meth:`covers`; points ask :meth:`holds`), and the free-space grid.
+        Snap rounding: robust, and without it near-coincident edges of overlapping views leave
+        sliver holes that fail path checks (tried: twice as fast, office 8 % slower to explore)."""
+        if self._grown is None:
+            self._grown = shapely.union_all(self.shapes, grid_size=1e-3)
+            shapely.prepare(self._grown)
+        return self._grown
+
+    def covers(self, geometry: shapely.Geometry) -> bool:
+        """Whether the grown polygon covers the geometry (a path): settled by one view alone when
+        one covers it, so most paths are checked without building the union."""
+        if self._grown is None and bool(shapely.covers(self.shapes, geometry).any()):
+            return True
+        return bool(self.grown.covers(geometry))
+
+    def holds(self, points_xy: FloatArray) -> NDArray[np.bool_]:
+        """Which points lie inside one of the neighbourhood's polygons (inside the grown one)."""
+        if points_xy.shape[0] == 0:
+            return np.zeros(0, dtype=bool)
+        if self._grown is not None:
+            return np.asarray(shapely.contains_xy(self._grown, points_xy[:, 0], points_xy[:, 1]), dtype=bool)
+        inside = shapely.contains_xy(self.shapes[:, None], points_xy[None, :, 0], points_xy[None, :, 1])
+        return np.asarray(inside.any(axis=0), dtype=bool)
 
 
 class LocalMap:
@@ -107,6 +142,7 @@ class LocalMap:
         self._neighbours: dict[int, dict[int, Pose2]] = {}
         self._views: dict[int, LocalView] = {}
         self._next_id = 0
+        self._radii_m: list[float] = []
         self.loop_closures = 0
 
     def __len__(self) -> int:
@@ -125,6 +161,7 @@ class LocalMap:
         self._next_id += 1
         kf = Keyframe(kf_id, stamp_s, odom_pose, polygon)
         self.keyframes[kf_id] = kf
+        self._radii_m.append(kf.radius_m)  # by id: ids count up from 0
         self.graph.add_keyframe(kf_id)
         self._neighbours[kf_id] = {}
         if parent is not None:
@@ -159,7 +196,7 @@ class LocalMap:
 
     def _build_view(self, keyframe_id: int) -> LocalView:
         """The view's geometry (no frontier closing), cached: every neighbour moved into the
-        keyframe's frame in one vectorised pass, then one union."""
+        keyframe's frame in one vectorised pass (their union waits for :attr:`LocalView.grown`)."""
         poses = {keyframe_id: Pose2.identity(), **self._neighbours[keyframe_id]}
         frames = list(poses.values())
         kfs = [self.keyframes[k] for k in poses]
@@ -168,14 +205,10 @@ class LocalMap:
         bad = ~shapely.is_valid(shapes)
         if bad.any():
             shapes[bad] = shapely.make_valid(shapes[bad])
-        # Snap rounding: robust, and without it near-coincident edges of overlapping views leave
-        # sliver holes that fail path checks (tried: twice as fast, office 8 % slower to explore).
-        grown = shapely.union_all(shapes, grid_size=1e-3)
-        shapely.prepare(grown)
         walls_xy = apply_grouped(frames, [kf.walls.reshape(-1, 2) for kf in kfs]).reshape(-1, 2, 2)
         obstacles = _segments_geometry(walls_xy)
         shapely.prepare(obstacles)
-        view = LocalView(keyframe_id, poses, grown, walls_xy, obstacles)
+        view = LocalView(keyframe_id, poses, shapes, walls_xy, obstacles)
         self._views[keyframe_id] = view
         return view
 
@@ -186,8 +219,7 @@ class LocalMap:
         view = self.view(frame_id)
         kf = self.keyframes[keyframe_id]
         pose = view.poses.get(keyframe_id) or self.pose_in(frame_id, keyframe_id)
-        pts = pose.apply(kf.beyond_points(indices, self.params.closing_offset_m))
-        seen: NDArray[np.bool_] = shapely.contains_xy(view.grown, pts[:, 0], pts[:, 1])
+        seen = view.holds(pose.apply(kf.beyond_points(indices, self.params.closing_offset_m)))
         kf.close(indices[seen])
         return seen
 
@@ -204,7 +236,7 @@ class LocalMap:
         p = self.params
         reach = self.graph.reached(keyframe_id)
         ids, hops, poses = reach.ids, reach.hops, reach.poses
-        radii = np.fromiter((self.keyframes[int(k)].radius_m for k in ids), dtype=np.float64, count=ids.size)
+        radii = np.asarray(self._radii_m)[ids]
         test = (ids >= since_id) & (ids != keyframe_id) & (hops <= p.chain_max_hops)
         test &= np.hypot(poses[:, 0], poses[:, 1]) <= kf.radius_m + radii
         test[test] &= ~np.isin(ids[test], np.fromiter(self._neighbours[keyframe_id], dtype=np.intp))
@@ -246,18 +278,28 @@ class LocalMap:
         kf = self.keyframes[kf_id]
         shape = kf.polygon.shape
 
-        def overlaps(other_id: int, pose: Pose2) -> bool:
-            other = self.keyframes[other_id]
-            if math.hypot(pose.x_m, pose.y_m) > kf.radius_m + other.radius_m:
-                return False
+        def overlaps(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
+            """Which of these views, at these poses, overlap this one (all at once)."""
+            others = [self.keyframes[k] for k in ids]
+            xy = np.array([(p.x_m, p.y_m) for p in poses]).reshape(-1, 2)
+            radii = np.array([o.radius_m for o in others])
+            out: NDArray[np.bool_] = np.hypot(xy[:, 0], xy[:, 1]) <= kf.radius_m + radii
+            near = np.flatnonzero(out)
+            if near.size == 0:
+                return out
             # A corner of the other view inside this one settles it without building the moved
             # polygon (most neighbours overlap a lot); the exact test only for the rest.
-            corners = pose.apply(other.corners_xy)
-            if shapely.contains_xy(shape, corners[:, 0], corners[:, 1]).any():
-                return True
-            return bool(shape.intersects(pose.move(other.polygon.shape)))
+            corners = [others[i].corners_xy for i in near]
+            pts = apply_grouped([poses[i] for i in near], corners)
+            owner = np.repeat(np.arange(near.size), [c.shape[0] for c in corners])
+            inside = np.bincount(owner, shapely.contains_xy(shape, pts[:, 0], pts[:, 1]), minlength=near.size) > 0
+            rest = near[~inside]
+            if rest.size:
+                shapes = np.array([others[i].polygon.shape for i in rest], dtype=object)
+                out[rest] = shapely.intersects(shape, move_each([poses[i] for i in rest], shapes))
+            return out
 
-        return {v.keyframe_id: v.pose_in_start for v in self.graph.walk(kf_id, overlaps) if v.keyframe_id != kf_id}
+        return {v.keyframe_id: v.pose_in_start for v in self.graph.walk_levels(kf_id, overlaps)[1:]}
 
     def _integrate(self, kf_id: int) -> None:
         """(Re)compute a keyframe's neighbourhood, then close the frontiers it shares."""
@@ -282,8 +324,7 @@ class LocalMap:
             return
         off = self.params.closing_offset_m
         beyond = [kf.beyond_points(i, off) for kf, i in zip(kfs, idx, strict=True)]
-        pts = apply_grouped(list(view.poses.values()), beyond)
-        _free_where(kfs, idx, shapely.contains_xy(view.grown, pts[:, 0], pts[:, 1]))
+        _free_where(kfs, idx, view.holds(apply_grouped(list(view.poses.values()), beyond)))
 
     def _close_at_walls(self, kf_id: int, view: LocalView) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
@@ -320,6 +361,12 @@ def _free_where(kfs: list[Keyframe], indices: list[NDArray[np.intp]], hit: NDArr
 def _near(points_xy: FloatArray, segments: FloatArray, snap_m: float) -> NDArray[np.bool_]:
     """Which points lie within ``snap_m`` of any of the segments (M, 2, 2)."""
     if segments.shape[0] == 0 or points_xy.shape[0] == 0:
+        return np.zeros(points_xy.shape[0], dtype=bool)
+    # Only the segments whose bounding box comes within the snap of the points' box can be near.
+    lo, hi = points_xy.min(axis=0) - snap_m, points_xy.max(axis=0) + snap_m
+    seg_lo, seg_hi = segments.min(axis=1), segments.max(axis=1)
+    segments = segments[np.all((seg_hi >= lo) & (seg_lo <= hi), axis=1)]
+    if segments.shape[0] == 0:
         return np.zeros(points_xy.shape[0], dtype=bool)
     near: NDArray[np.bool_] = point_segment_distances(points_xy, segments).min(axis=1) < snap_m
     return near

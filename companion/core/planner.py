@@ -442,7 +442,7 @@ class FrontierPlanner:
         heading = np.where(dist > 0.5, travel, look)
         change = np.abs(wrap_angles(heading - vehicle.yaw_rad))
         score = change + p.distance_weight_rad_per_m * dist
-        inside = shapely.contains_xy(view.grown, g[:, 0], g[:, 1])
+        inside = view.holds(g)
         order = np.argsort(score, kind="stable")
         order = order[inside[order]][:limit]
         ids, ind = np.concatenate(key_ids)[order], np.concatenate(key_idx)[order]
@@ -514,13 +514,13 @@ class FrontierPlanner:
     def _accessible(self, view: LocalView, start: FloatArray, goal: FloatArray, required: float) -> bool:
         """Straight path inside known free space and clear of every obstacle edge in view."""
         if float(np.hypot(*(goal - start))) < 1e-6:
-            return bool(shapely.contains_xy(view.grown, goal[0], goal[1]))
+            return bool(view.holds(goal.reshape(1, 2))[0])
         path = shapely.LineString([start, goal])
         # The vehicle's own spot is free by its presence (it may sit on a polygon's corner, as at a
         # keyframe's origin): the part that must lie in known free space starts a little along.
         length = float(np.hypot(*(goal - start)))
         lead = start + (goal - start) * min(0.05 / length, 0.5)
-        if not view.grown.covers(shapely.LineString([lead, goal])):
+        if not view.covers(shapely.LineString([lead, goal])):
             return False
         if self._live.shape[0] and _segment_clearance(start, goal, self._live) < required:
             return False

@@ -136,6 +136,30 @@ class PoseGraph:
                 if accept is None or accept(nbr, pose):
                     queue.append(Visit(nbr, visit.hops + 1, pose))
 
+    def walk_levels(self, start_id: int, accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]]) -> list[Visit]:
+        """:meth:`walk`, with ``accept`` asked once per hop count for every keyframe first met at
+        that count (ids and poses in the start's frame, in the walk's order), so it can test them
+        all in one vectorised pass. Visits the same keyframes with the same poses."""
+        if start_id not in self._adjacency:
+            raise GraphError(f"keyframe {start_id} is not in the graph")
+        seen = {start_id}
+        out = [Visit(start_id, 0, Pose2.identity())]
+        level = out
+        while level:
+            ids: list[int] = []
+            poses: list[Pose2] = []
+            for visit in level:
+                for nbr, rel in self._adjacency[visit.keyframe_id]:
+                    if nbr not in seen:
+                        seen.add(nbr)
+                        ids.append(nbr)
+                        poses.append(visit.pose_in_start.compose(rel))
+            hops = level[0].hops + 1
+            ok = accept(ids, poses) if ids else np.zeros(0, dtype=bool)
+            level = [Visit(k, hops, pose) for k, pose, keep in zip(ids, poses, ok, strict=True) if keep]
+            out.extend(level)
+        return out
+
     def order_from(self, start_id: int) -> list[int]:
         """Every keyframe connected to ``start_id``, nearest (in hops) first, in :meth:`walk`'s
         order, without composing a pose for each."""
