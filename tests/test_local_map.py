@@ -118,3 +118,25 @@ def test_closing_through_the_graph_since_a_keyframe_tests_only_the_views_from_it
     c = len(m) - 1  # C, the view that sees past A's arc
     assert m.close_through_graph(a, since_id=c + 1) == 0
     assert m.close_through_graph(a, since_id=c) > 0
+
+
+def test_a_view_answers_points_and_paths_as_its_union_does():
+    """Points and paths are asked of the views one by one before the union is built (it is the
+    dearest part of a view): the answers must be the union's."""
+    import shapely
+
+    m = LocalMap()
+    a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+    b = add_pose(m, Pose2(4.0, 0.0, math.pi / 2), a)
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-2.0, 8.0, size=(400, 2))
+    lines = [shapely.LineString(rng.uniform(-1.0, 7.0, size=(2, 2))) for _ in range(200)]
+    lines.append(shapely.LineString([(1.0, 0.0), (4.0, 3.0)]))  # from A's view into B's only
+    first = m.view(a[0])  # in A's frame: the world's here
+    got_points = first.holds(pts)
+    got_paths = [first.covers(line) for line in lines]
+    union = shapely.union_all(first.shapes, grid_size=1e-3)
+    assert np.array_equal(got_points, shapely.contains_xy(union, pts[:, 0], pts[:, 1]))
+    assert got_paths == [bool(union.covers(line)) for line in lines]
+    assert got_paths[-1] and not any(shapely.covers(first.shapes, lines[-1]))
+    assert 0 < sum(got_paths) < len(got_paths) and 0 < got_points.sum() < len(pts)

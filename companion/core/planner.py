@@ -465,9 +465,10 @@ class FrontierPlanner:
         limit = self.params.max_candidates_checked * (8 if dense else 1)
         candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense, limit)
         candidates = [c for c in candidates if self._open_through_graph(local_map, c.key)]
-        for c in candidates:
-            if self._accessible(view, here, c.goal_xy, required):
-                return c
+        if candidates:
+            first = self._first_accessible(view, here, np.array([c.goal_xy for c in candidates]), required)
+            if first is not None:
+                return candidates[first]
         # No straight path: look for paths through the known free space (a frontier seen through a
         # door at an angle). Once per view and place, unless asked at a keyframe's origin.
         tried = (view, math.floor(here[0]), math.floor(here[1]))
@@ -513,27 +514,38 @@ class FrontierPlanner:
 
     def _accessible(self, view: LocalView, start: FloatArray, goal: FloatArray, required: float) -> bool:
         """Straight path inside known free space and clear of every obstacle edge in view."""
-        if float(np.hypot(*(goal - start))) < 1e-6:
-            return bool(view.holds(goal.reshape(1, 2))[0])
-        path = shapely.LineString([start, goal])
-        # The vehicle's own spot is free by its presence (it may sit on a polygon's corner, as at a
-        # keyframe's origin): the part that must lie in known free space starts a little along.
-        length = float(np.hypot(*(goal - start)))
-        lead = start + (goal - start) * min(0.05 / length, 0.5)
-        if not view.covers(shapely.LineString([lead, goal])):
-            return False
-        if self._live.shape[0] and _segment_clearance(start, goal, self._live) < required:
-            return False
+        return self._first_accessible(view, start, goal.reshape(1, 2), required) is not None
+
+    def _first_accessible(self, view: LocalView, start: FloatArray, goals: FloatArray, required: float) -> int | None:
+        """The first of the goals (K, 2) that :meth:`_accessible` holds for, None when none is.
+        The clearance tests run for all goals at once; free space (the dearest test) is asked
+        only of those that pass them, in order, until one does."""
+        delta = goals - start
+        length = np.hypot(delta[:, 0], delta[:, 1])
+        ok = np.ones(goals.shape[0], dtype=bool)
         # The start may be closer to a wall than the clearance (so the vehicle can always move
         # away); the end may not, or a vehicle near a wall would creep along closer and closer.
         end = self.params.goal_clearance_m
-        if self._live.shape[0] and float(np.min(np.hypot(*(self._live - goal).T))) < end:
-            return False
-        if view.obstacles.is_empty:
-            return True
-        if float(shapely.distance(shapely.Point(goal), view.obstacles)) < end:
-            return False
-        return float(shapely.distance(path, view.obstacles)) >= required
+        if self._live.shape[0]:
+            ok &= _segment_clearances(start, goals, self._live) >= required
+            gap = goals[:, None, :] - self._live[None, :, :]
+            ok &= np.hypot(gap[..., 0], gap[..., 1]).min(axis=1) >= end
+        paths = shapely.linestrings(np.stack((np.broadcast_to(start, goals.shape), goals), axis=1))
+        if not view.obstacles.is_empty:
+            ok &= shapely.distance(shapely.points(goals), view.obstacles) >= end
+            ok &= shapely.distance(paths, view.obstacles) >= required
+        ok |= length < 1e-6  # no path: the vehicle is there, so only its place must be free
+        for i in np.flatnonzero(ok):
+            if length[i] < 1e-6:
+                if view.holds(goals[i : i + 1])[0]:
+                    return int(i)
+                continue
+            # The vehicle's own spot is free by its presence (it may sit on a polygon's corner, as
+            # at a keyframe's origin): the part that must lie in known free space starts a little along.
+            lead = start + delta[i] * min(0.05 / float(length[i]), 0.5)
+            if view.covers(shapely.LineString([lead, goals[i]])):
+                return int(i)
+        return None
 
     # -- classical fallback (2.9.3) -------------------------------------------------------------
 
@@ -806,6 +818,16 @@ class FrontierPlanner:
         if sliding or abs(wrap_angle(travel - vehicle.yaw_rad)) > self.params.turn_first_rad:
             return Decision(mode, Target(vehicle.x_m, vehicle.y_m, travel), key)
         return Decision(mode, Target(float(goal_xy[0]), float(goal_xy[1]), travel), key)
+
+
+def _segment_clearances(a: FloatArray, ends: FloatArray, points_xy: FloatArray) -> FloatArray:
+    """For each segment from ``a`` to one of the ends (K, 2), its smallest distance to the points."""
+    ab = ends - a  # (K, 2)
+    denom = np.maximum(np.einsum("kd,kd->k", ab, ab), 1e-12)
+    t = np.clip(((points_xy - a) @ ab.T) / denom, 0.0, 1.0)  # (P, K)
+    dx = points_xy[:, 0, None] - (a[0] + t * ab[None, :, 0])
+    dy = points_xy[:, 1, None] - (a[1] + t * ab[None, :, 1])
+    return np.asarray(np.hypot(dx, dy).min(axis=0), dtype=np.float64)
 
 
 def _segment_clearance(a: FloatArray, b: FloatArray, points_xy: FloatArray) -> float:
