@@ -247,8 +247,10 @@ def test_drifting_towards_a_remembered_wall_holds_the_setpoint_short_of_it():
     def lead_m(params: ExplorerParams | None) -> float:
         ex = Explorer(params)
         ex.step(Odometry(0.0, Pose2(0.0, -0.1, math.pi / 2)), _wall_ahead_scan(0.0, 0.7))
-        ex.step(Odometry(0.8, Pose2(0.0, -0.1, -0.3)))
-        sp = ex.step(Odometry(1.0, Pose2(0.0, 0.0, -0.3)), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0)).setpoint
+        ex.step(Odometry(0.8, Pose2(0.0, -0.15, -0.3)))
+        # The eastern view becomes a keyframe after this step's plan; the next step plans on it.
+        ex.step(Odometry(1.0, Pose2(0.0, -0.05, -0.3)), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
+        sp = ex.step(Odometry(1.1, Pose2(0.0, 0.0, -0.3))).setpoint
         return math.hypot(sp.x_m, sp.y_m)
 
     assert lead_m(None) == pytest.approx(0.6 - (0.3 + 0.15 * 0.5) - 0.1, abs=0.02)

@@ -121,13 +121,13 @@ def test_closing_through_the_graph_since_a_keyframe_tests_only_the_views_from_it
 
 
 def test_a_view_answers_points_and_paths_as_its_union_does():
-    """Points and paths are asked of the views one by one before the union is built (it is the
-    dearest part of a view): the answers must be the union's."""
+    """Points are asked of the views one by one before the union is built (it is the dearest
+    part of a view): the answers, and those about paths, must be the union's."""
     import shapely
 
     m = LocalMap()
     a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
-    b = add_pose(m, Pose2(4.0, 0.0, math.pi / 2), a)
+    add_pose(m, Pose2(4.0, 0.0, math.pi / 2), a)  # B, east of A, looking north
     rng = np.random.default_rng(7)
     pts = rng.uniform(-2.0, 8.0, size=(400, 2))
     lines = [shapely.LineString(rng.uniform(-1.0, 7.0, size=(2, 2))) for _ in range(200)]

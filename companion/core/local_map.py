@@ -106,8 +106,8 @@ class LocalView:
     @property
     def grown(self) -> shapely.Geometry:
         """The union of the neighbourhood's polygons (known free space), built on first use: the
-        union is the dearest part of a view, and only paths that no single view covers need it
-        (see :meth:`covers`; points ask :meth:`holds`), and the free-space grid.
+        union is the dearest part of a view, and only paths (:meth:`covers`) and the free-space
+        grid need it; points ask :meth:`holds`.
         Snap rounding: robust, and without it near-coincident edges of overlapping views leave
         sliver holes that fail path checks (tried: twice as fast, office 8 % slower to explore)."""
         if self._grown is None:
@@ -116,10 +116,9 @@ class LocalView:
         return self._grown
 
     def covers(self, geometry: shapely.Geometry) -> bool:
-        """Whether the grown polygon covers the geometry (a path): settled by one view alone when
-        one covers it, so most paths are checked without building the union."""
-        if self._grown is None and bool(shapely.covers(self.shapes, geometry).any()):
-            return True
+        """Whether the grown polygon covers the geometry (a path). Settling it by one view alone
+        when one covers it (no union) lowered step p99 but was not kept: see docs/benchmarks.md,
+        session 11."""
         return bool(self.grown.covers(geometry))
 
     def holds(self, points_xy: FloatArray) -> NDArray[np.bool_]:
