@@ -94,3 +94,27 @@ def test_a_frontier_a_view_beyond_the_neighbourhood_saw_past_is_not_flown_to():
     assert decision.mode is Mode.EXPLORING and decision.goal is not None
     assert np.all(a.kinds[ahead] == VertexKind.FREE)
     assert decision.goal.index not in ahead
+
+
+def test_a_path_keeps_from_the_newest_returns_what_the_setpoint_lead_will_keep():
+    """A wall drifted onto the vehicle eases the clearance paths keep from the map; from the
+    newest returns a path must still keep the body radius and margin (what the setpoint lead
+    holds the vehicle to), or the lead stops it on a path the planner thinks clear, for good
+    (hotel seed 7 sat 700 s in a doorway). Already closer than that, it may move away."""
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    planner = FrontierPlanner()
+    here = np.zeros(2)
+    floor = planner.params.body_radius_m + planner.params.leg_margin_m
+    jamb = np.array([[0.28, -0.22]])  # a door jamb ahead on the right, 0.36 m away
+    planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0, live_obstacles_xy=jamb)
+    view = m.view(kf.keyframe_id)
+    eased = 0.145  # what a map wall 0.16 m from the vehicle leaves as the required clearance
+    straight, centred = np.array([1.5, 0.0]), np.array([1.0, 0.5])
+    assert planner._accessible(view, here, straight, eased) is False  # passes the jamb 0.22 m off
+    assert planner._accessible(view, here, centred, eased) is True  # keeps more than the floor
+    assert planner._leg_blocked(Pose2(0.0, 0.0, 0.0), here, straight, eased)
+    # Already 0.2 m from a return: paths keeping 0.19 m from it are allowed (it can move away).
+    planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 101.0, live_obstacles_xy=np.array([[0.0, -0.2]]))
+    assert planner._live_floor_m == 0.95 * 0.2 < floor
+    assert planner._accessible(view, here, np.array([1.5, 0.1]), eased) is True

@@ -175,6 +175,7 @@ class FrontierPlanner:
     _live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
     _grid: tuple[LocalView, FreeSpaceGrid] | None = None
     _grid_tried: tuple[LocalView, int, int] | None = None  # (view, cell): the grid found nothing there
+    _live_floor_m: float = 0.0  # see _live_floor
 
     def plan(
         self,
@@ -207,6 +208,7 @@ class FrontierPlanner:
         self._live_surface = live_surface
         self._cooling = {k: t for k, t in self._cooling.items() if t > stamp_s}
         required = self._required_clearance(view, here)
+        self._live_floor_m = self._live_floor(here)
 
         if self.goal is not None:
             decision = self._follow_goal(local_map, frame_id, view, vehicle, here, required, stamp_s)
@@ -288,6 +290,17 @@ class FrontierPlanner:
         """A leg through known free space needs the body radius clear, not the whole margin."""
         return min(required, self.params.body_radius_m + self.params.leg_margin_m)
 
+    def _live_floor(self, here: FloatArray) -> float:
+        """The least clearance from the newest returns any path needs: the body radius and leg
+        margin, or (already closer to one) nearly what the vehicle has now. The setpoint lead
+        holds the vehicle that far from returns whatever the planner asks; a path the planner
+        let closer (its clearance eased by a map wall drifted onto the vehicle) held it still
+        in a doorway until the route timed out, over and over (hotel seed 7)."""
+        if self._live.shape[0] == 0:
+            return 0.0
+        now = float(np.min(np.hypot(*(self._live - here).T)))
+        return min(self.params.body_radius_m + self.params.leg_margin_m, 0.95 * now)
+
     def _past_corners(self, path: FloatArray, here: FloatArray) -> FloatArray:
         """The path without the corners already passed (its last point always stays)."""
         while path.shape[0] > 1 and self._reached(path[0], here, self.params.corner_reached_m):
@@ -307,7 +320,7 @@ class FrontierPlanner:
         facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
         if not (facing and self._live.shape[0]):
             return False
-        return _segment_clearance(here, wp, self._live) < self._leg_required(required)
+        return _segment_clearance(here, wp, self._live) < max(self._leg_required(required), self._live_floor_m)
 
     def _commit(self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float) -> None:
         pose = local_map.pose_in(frame_id, c.key.keyframe_id).inverse()
@@ -527,7 +540,7 @@ class FrontierPlanner:
         # away); the end may not, or a vehicle near a wall would creep along closer and closer.
         end = self.params.goal_clearance_m
         if self._live.shape[0]:
-            ok &= _segment_clearances(start, goals, self._live) >= required
+            ok &= _segment_clearances(start, goals, self._live) >= max(required, self._live_floor_m)
             gap = goals[:, None, :] - self._live[None, :, :]
             ok &= np.hypot(gap[..., 0], gap[..., 1]).min(axis=1) >= end
         paths = shapely.linestrings(np.stack((np.broadcast_to(start, goals.shape), goals), axis=1))
