@@ -477,11 +477,16 @@ class FrontierPlanner:
         dense = only_keyframe is not None
         limit = self.params.max_candidates_checked * (8 if dense else 1)
         candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense, limit)
-        candidates = [c for c in candidates if self._open_through_graph(local_map, c.key)]
         if candidates:
-            first = self._first_accessible(view, here, np.array([c.goal_xy for c in candidates]), required)
+            # The best candidate still open once views along the graph are checked, with a clear
+            # straight path; the graph is checked only for those the clearance tests pass.
+            goals = np.array([c.goal_xy for c in candidates])
+            first = self._first_accessible(
+                view, here, goals, required, lambda i: self._open_through_graph(local_map, candidates[i].key)
+            )
             if first is not None:
                 return candidates[first]
+        candidates = [c for c in candidates if self._open_through_graph(local_map, c.key)]
         # No straight path: look for paths through the known free space (a frontier seen through a
         # door at an angle). Once per view and place, unless asked at a keyframe's origin.
         tried = (view, math.floor(here[0]), math.floor(here[1]))
@@ -529,10 +534,17 @@ class FrontierPlanner:
         """Straight path inside known free space and clear of every obstacle edge in view."""
         return self._first_accessible(view, start, goal.reshape(1, 2), required) is not None
 
-    def _first_accessible(self, view: LocalView, start: FloatArray, goals: FloatArray, required: float) -> int | None:
-        """The first of the goals (K, 2) that :meth:`_accessible` holds for, None when none is.
-        The clearance tests run for all goals at once; free space (the dearest test) is asked
-        only of those that pass them, in order, until one does."""
+    def _first_accessible(
+        self,
+        view: LocalView,
+        start: FloatArray,
+        goals: FloatArray,
+        required: float,
+        keep: Callable[[int], bool] | None = None,
+    ) -> int | None:
+        """The first of the goals (K, 2) that :meth:`_accessible` holds for (and ``keep``, if
+        given), None when none is. The clearance tests run for all goals at once; ``keep`` and
+        free space (the dearest tests) are asked only of those that pass them, in order."""
         delta = goals - start
         length = np.hypot(delta[:, 0], delta[:, 1])
         ok = np.ones(goals.shape[0], dtype=bool)
@@ -549,6 +561,8 @@ class FrontierPlanner:
             ok &= shapely.distance(paths, view.obstacles) >= required
         ok |= length < 1e-6  # no path: the vehicle is there, so only its place must be free
         for i in np.flatnonzero(ok):
+            if keep is not None and not keep(int(i)):
+                continue
             if length[i] < 1e-6:
                 if view.holds(goals[i : i + 1])[0]:
                     return int(i)
