@@ -83,3 +83,33 @@ def test_reached_matches_the_walk_as_the_graph_grows_and_closes_loops():
     assert 9 not in _as_reached(g, 0)
     g.add_edge(8, 9, step, EdgeType.ODOMETRY)  # ... joined later, bringing 10 along
     assert _as_reached(g, 0) == _as_walk(g, 0) and 10 in _as_reached(g, 0)
+
+
+def test_reached_stays_the_walk_as_the_graph_grows_and_closes_loops():
+    """``reached`` is kept per start and extended by new leaves rather than walked again; whatever
+    the graph does (leaves, branches, loop closures), it must answer as a fresh walk does, to the
+    bit."""
+    import random
+
+    rng = random.Random(3)
+    for _ in range(60):
+        g = PoseGraph()
+        g.add_keyframe(0)
+        n = 1
+        for _ in range(50):
+            rel = Pose2(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-3, 3))
+            if rng.random() < 0.7 or n < 3:
+                g.add_keyframe(n)
+                g.add_edge(rng.randrange(n) if rng.random() < 0.2 else n - 1, n, rel, EdgeType.ODOMETRY)
+                n += 1
+            else:
+                a, b = rng.sample(range(n), 2)
+                g.add_edge(a, b, rel, EdgeType.LOOP_CLOSURE)
+            for start in rng.sample(range(n), min(3, n)):
+                got = g.reached(start)
+                mine = {int(k): (int(h), tuple(p)) for k, h, p in zip(got.ids, got.hops, got.poses, strict=True)}
+                walk = {
+                    v.keyframe_id: (v.hops, (v.pose_in_start.x_m, v.pose_in_start.y_m, v.pose_in_start.yaw_rad))
+                    for v in g.walk(start)
+                }
+                assert mine == walk
