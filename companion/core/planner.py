@@ -32,7 +32,7 @@ from companion.core.errors import GraphError
 from companion.core.fov_polygon import VertexKind
 from companion.core.free_space_grid import FreeSpaceGrid, GridParams, Reach
 from companion.core.frontiers import FrontierKey, targetable_indices
-from companion.core.geometry import FloatArray, Pose2, wrap_angle, wrap_angles
+from companion.core.geometry import FloatArray, Pose2, point_segment_distances, wrap_angle, wrap_angles
 from companion.core.local_map import LocalMap, LocalView
 
 
@@ -849,18 +849,10 @@ class FrontierPlanner:
 
 def _segment_clearances(a: FloatArray, ends: FloatArray, points_xy: FloatArray) -> FloatArray:
     """For each segment from ``a`` to one of the ends (K, 2), its smallest distance to the points."""
-    ab = ends - a  # (K, 2)
-    denom = np.maximum(np.einsum("kd,kd->k", ab, ab), 1e-12)
-    t = np.clip(((points_xy - a) @ ab.T) / denom, 0.0, 1.0)  # (P, K)
-    dx = points_xy[:, 0, None] - (a[0] + t * ab[None, :, 0])
-    dy = points_xy[:, 1, None] - (a[1] + t * ab[None, :, 1])
-    return np.asarray(np.hypot(dx, dy).min(axis=0), dtype=np.float64)
+    segments = np.stack((np.broadcast_to(a, ends.shape), ends), axis=1)
+    return np.asarray(point_segment_distances(points_xy, segments).min(axis=0), dtype=np.float64)
 
 
 def _segment_clearance(a: FloatArray, b: FloatArray, points_xy: FloatArray) -> float:
     """Smallest distance from the segment a-b to any of the points."""
-    ab = b - a
-    denom = max(float(ab @ ab), 1e-12)
-    t = np.clip((points_xy - a) @ ab / denom, 0.0, 1.0)
-    d = points_xy - (a + t[:, None] * ab)
-    return float(np.min(np.hypot(d[:, 0], d[:, 1])))
+    return float(_segment_clearances(a, b.reshape(1, 2), points_xy)[0])

@@ -10,7 +10,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -115,31 +115,22 @@ class PoseGraph:
         except KeyError:
             raise GraphError(f"keyframe {keyframe_id} is not in the graph") from None
 
-    def walk(self, start_id: int, accept: Callable[[int, Pose2], bool] | None = None) -> Iterator[Visit]:
-        """Breadth-first walk by hop count from ``start_id`` (yielded first).
+    def walk(self, start_id: int, accept: Callable[[int, Pose2], bool] | None = None) -> list[Visit]:
+        """Breadth-first walk by hop count from ``start_id`` (first in the list).
 
-        A keyframe for which ``accept(id, pose_in_start)`` is False is neither yielded nor
+        A keyframe for which ``accept(id, pose_in_start)`` is False is neither visited nor
         expanded: the walk stops along that branch. Poses compose along the first path found.
         """
-        if start_id not in self._adjacency:
-            raise GraphError(f"keyframe {start_id} is not in the graph")
-        seen = {start_id}
-        queue: deque[Visit] = deque([Visit(start_id, 0, Pose2.identity())])
-        while queue:
-            visit = queue.popleft()
-            yield visit
-            for nbr, rel in self._adjacency[visit.keyframe_id]:
-                if nbr in seen:
-                    continue
-                seen.add(nbr)
-                pose = visit.pose_in_start.compose(rel)
-                if accept is None or accept(nbr, pose):
-                    queue.append(Visit(nbr, visit.hops + 1, pose))
+
+        def each(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
+            return np.array([accept is None or accept(k, p) for k, p in zip(ids, poses, strict=True)], dtype=bool)
+
+        return self.walk_levels(start_id, each)
 
     def walk_levels(self, start_id: int, accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]]) -> list[Visit]:
         """:meth:`walk`, with ``accept`` asked once per hop count for every keyframe first met at
         that count (ids and poses in the start's frame, in the walk's order), so it can test them
-        all in one vectorised pass. Visits the same keyframes with the same poses."""
+        all in one vectorised pass."""
         if start_id not in self._adjacency:
             raise GraphError(f"keyframe {start_id} is not in the graph")
         seen = {start_id}
