@@ -137,6 +137,36 @@ def test_explorer_turns_a_loop_closure_into_a_graph_edge():
     assert ex.map.loop_closures == 2
 
 
+@pytest.mark.parametrize("mode", [Mode.BACKTRACKING, Mode.EXPLORING])
+def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
+    """Odometry says the vehicle flew 4.8 m east of the keyframe at x = 1.2 m; the SLAM back end
+    recognises that place and measures it 0.3 m to the north as well. Flying back through known
+    space (where the thesis teleported), the vehicle is then placed in that keyframe's frame by
+    the measurement; exploring, it keeps its newest keyframe's frame."""
+    ex = Explorer()
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    for i in range(6):
+        ex.step(Odometry(float(i), Pose2(1.2 * i, 0.0, 0.0)), scan(float(i)))
+    newest = ex.current_id
+    place = next(k for k, kf in ex.map.keyframes.items() if kf.stamp_s == 1.0)
+    ex.step(Odometry(5.5, Pose2(6.0, 0.0, 0.0)))
+    ex._last_mode = mode
+    assert ex._apply_loop_closure(LoopClosure(1.0, 5.5, Pose2(4.8, 0.3, 0.0)))
+    here = ex.anchor.between(Pose2(6.0, 0.0, 0.0))
+    if mode is Mode.BACKTRACKING:
+        assert ex.current_id == place and ex.relocalized == 1
+        assert math.isclose(here.x_m, 4.8, abs_tol=1e-9) and math.isclose(here.y_m, 0.3, abs_tol=1e-9)
+    else:
+        assert ex.current_id == newest and ex.relocalized == 0
+        assert math.isclose(here.y_m, 0.0, abs_tol=1e-9)
+    # A closure about a moment long past says nothing about where the vehicle is now.
+    ex.step(Odometry(8.0, Pose2(6.0, 0.0, 0.0)))
+    ex._last_mode = Mode.BACKTRACKING
+    before = ex.relocalized
+    assert ex._apply_loop_closure(LoopClosure(2.0, 5.5, Pose2(3.6, 0.3, 0.0)))
+    assert ex.relocalized == before
+
+
 def test_a_loop_closure_joins_the_keyframe_whose_view_holds_the_moment_not_merely_the_nearest_in_time():
     """The vehicle flies east, then turns north at x = 3.6 m. A moment just before the turn lies
     behind the north-facing keyframe's view (which is nearer in time) but inside the east-facing

@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import shapely
 
 from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
 from companion.core.frontiers import FrontierKey, targetable_indices
@@ -118,3 +119,32 @@ def test_a_path_keeps_from_the_newest_returns_what_the_setpoint_lead_will_keep()
     planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 101.0, live_obstacles_xy=np.array([[0.0, -0.2]]))
     assert planner._live_floor_m == 0.95 * 0.2 < floor
     assert planner._accessible(view, here, np.array([1.5, 0.1]), eased) is True
+
+
+def test_a_route_leg_grazing_a_wall_goes_round_through_the_newest_scan():
+    """In a narrow corridor the next route keyframe may sit (as the drifted graph places it) too
+    close to a wall for a straight leg. The planner then aims through the newest scan's free
+    space, nearer the keyframe and clear of the returns, rather than count the leg blocked; with
+    the way truly closed it finds no such aim."""
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    xs = np.arange(0.2, 3.0, 0.05)
+    wall = np.column_stack((xs, np.full(xs.size, 0.45)))  # the corridor's wall, 0.45 m to the left
+    corridor = shapely.box(-0.1, -0.9, 3.0, 0.45)
+    planner = FrontierPlanner()
+    planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0, live_obstacles_xy=wall, live_view=lambda: corridor)
+    here, wp = np.zeros(2), np.array([2.0, 0.3])  # 0.15 m from the wall
+    required = planner.params.clearance_m
+    assert planner._leg_blocked(Pose2(0.0, 0.0, 0.0), here, wp, required)
+    aim = planner._sidestep(here, wp, required)
+    assert aim is not None
+    floor = planner.params.body_radius_m + planner.params.leg_margin_m
+    assert np.hypot(*(wp - here)) - np.hypot(*(wp - aim)) >= planner.params.sidestep_gain_m
+    assert np.min(np.hypot(*(wall - aim).T)) >= floor
+    assert corridor.covers(shapely.LineString([here + 0.05 * aim / np.hypot(*aim), aim]))
+    # A wall across the corridor 0.5 m ahead: no aim gets nearer without passing it too close.
+    ys = np.arange(-0.9, 0.45, 0.05)
+    across = np.vstack((wall, np.column_stack((np.full(ys.size, 0.5), ys))))
+    closed = shapely.box(-0.1, -0.9, 0.5, 0.45)
+    planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 101.0, live_obstacles_xy=across, live_view=lambda: closed)
+    assert planner._sidestep(here, wp, required) is None

@@ -113,3 +113,26 @@ def test_reached_stays_the_walk_as_the_graph_grows_and_closes_loops():
                     for v in g.walk(start)
                 }
                 assert mine == walk
+
+
+def test_a_keyframe_as_many_hops_either_way_is_placed_through_the_loop_closure():
+    """Keyframe 2 is two hops from 4 along odometry (4-3-2) and two through a loop closure
+    (4-1-2). Odometry carries every metre's drift; a loop closure is measured. The walk, paths
+    and poses go through the loop closure."""
+    g = PoseGraph()
+    for k in range(5):
+        g.add_keyframe(k)
+    truth = [Pose2(float(k), 0.0, 0.0) for k in range(5)]
+    drift = Pose2(0.0, 0.1, 0.02)  # each odometry edge a little off
+    for k in range(1, 5):
+        g.add_edge(k - 1, k, truth[k - 1].between(truth[k]).compose(drift), EdgeType.ODOMETRY)
+    g.add_edge(1, 4, truth[1].between(truth[4]), EdgeType.LOOP_CLOSURE)
+    via_closure = truth[4].between(truth[1]).compose(g.relative(1, 2))
+    walked = {v.keyframe_id: v.pose_in_start for v in g.walk(4)}
+    assert g.path(4, 2) == [4, 1, 2]
+    for pose in (walked[2], g.relative(4, 2)):
+        assert math.isclose(pose.x_m, via_closure.x_m, abs_tol=1e-12)
+        assert math.isclose(pose.y_m, via_closure.y_m, abs_tol=1e-12)
+    reached = g.reached(4)
+    row = int(list(reached.ids).index(2))
+    assert math.isclose(float(reached.poses[row, 1]), via_closure.y_m, abs_tol=1e-12)

@@ -43,6 +43,10 @@ class ExplorerParams:
     # where the newest scan sees through them by the margin. 0 s keeps the newest scan's only.
     # (Planning keeps to the newest scan: remembered returns, a little off after travel, closed
     # narrow doors to the free-space grid and ended office runs early.)
+    # Flying back through known space, a loop closure this fresh relocalises the vehicle at the
+    # old place it recognised (see Explorer._relocalize).
+    relocalize_on_loop_closure: bool = True
+    relocalize_max_age_s: float = 1.0
     obstacle_memory_s: float = 5.0
     obstacle_memory_m: float = 1.5
     obstacle_seen_through_m: float = 0.1
@@ -145,6 +149,7 @@ class Explorer:
         self.anchor = Pose2.identity()  # current keyframe's pose in the odometry frame
         self.history = OdometryHistory()
         self.loop_closures_rejected = 0
+        self.relocalized = 0  # times a loop closure relocalised the vehicle (see _relocalize)
         self._want_keyframe = False
         self._last_odom: Odometry | None = None
         self._last_mode = Mode.EXPLORING
@@ -280,10 +285,35 @@ class Explorer:
             return False
         ka, kb = self.map.keyframes[a], self.map.keyframes[b]
         a_to_b = ka.odom_pose.between(pe).compose(closure.earlier_to_current).compose(pc.between(kb.odom_pose))
+        old = a
         if a > b:
             a, b, a_to_b = b, a, a_to_b.inverse()
         self.map.add_loop_closure(a, b, a_to_b)
+        self._relocalize(old, ka.odom_pose.between(pe).compose(closure.earlier_to_current), closure.current_stamp_s)
         return True
+
+    def _relocalize(self, keyframe_id: int, current_in_keyframe: Pose2, stamp_s: float) -> None:
+        """While flying back through known space, take a fresh loop closure's measured pose as
+        where the vehicle is: its frame becomes the old place's keyframe. Otherwise the vehicle
+        knows where it is along the route only by odometry since the last keyframe it took and by
+        the route keyframes it believes it reached, and that error grows with every metre flown
+        back (the thesis teleported the vehicle there instead)."""
+        newest = self.history.newest_stamp()
+        pose_then = self.history.at(stamp_s)
+        if (
+            not self.params.relocalize_on_loop_closure
+            or self._last_mode is not Mode.BACKTRACKING
+            or newest is None
+            or pose_then is None
+            or newest - stamp_s > self.params.relocalize_max_age_s
+        ):
+            return
+        now = self.history.at(newest)
+        assert now is not None
+        vehicle = current_in_keyframe.compose(pose_then.between(now))
+        self.anchor = now.compose(vehicle.inverse())
+        self.current_id = keyframe_id
+        self.relocalized += 1
 
     # -- internals -------------------------------------------------------------------------------
 

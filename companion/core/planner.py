@@ -65,6 +65,13 @@ class PlannerParams:
     route_timeout_s: float = 30.0  # backtracking without reaching a waypoint for this long fails the target
     side_shift_m: float = 0.5  # sideways goal shift tried from a keyframe's origin
     approach_gain_m: float = 1.0  # an approach must end at least this much nearer its frontier
+    # A route leg the newest scan sees blocked is flown round through the scan's own free space
+    # (aims this far off the leg's line, this long, each at least the gain nearer the waypoint)
+    # before it counts as blocked.
+    sidestep_max_deg: float = 40.0
+    sidestep_step_deg: float = 10.0
+    sidestep_lengths_m: tuple[float, ...] = (0.5, 0.8, 1.2)
+    sidestep_gain_m: float = 0.3
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
     grid: GridParams = field(default_factory=GridParams)  # paths where a straight line is blocked
     goal_clearance_m: float = 0.3  # where a straight path ends keeps this clear, however close the start
@@ -649,6 +656,14 @@ class FrontierPlanner:
             if not fresh:  # planned before the newest scan: plan again with it
                 self._leg = None
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
+            aim = self._sidestep(here, wp, required)
+            if aim is not None:
+                # Only the line is blocked (a waypoint drifted onto a wall of a narrow corridor,
+                # older views' walls closing the free space around it): go on as the scan allows,
+                # by a leg through the aim (kept, so turning to it does not undo the choice).
+                self._leg = _Leg(frame_id, nxt, np.vstack((aim, wp)))
+                travel = float(np.arctan2(*(aim - here)[::-1]))
+                return self._fly(vehicle, aim, travel, Mode.BACKTRACKING, None)
             # The sensor sees this leg blocked now (a drifted or loop-closure leg cutting a
             # corner, no way round in view): never take it again; re-route around it, and only
             # when no route is left do the target's frontiers count a failed try.
@@ -686,6 +701,40 @@ class FrontierPlanner:
         aim = points[0]
         travel = float(np.arctan2(*(aim - here)[::-1]))
         return self._fly(vehicle, aim, travel, Mode.BACKTRACKING, None)
+
+    def _sidestep(self, here: FloatArray, wp: FloatArray, required: float) -> FloatArray | None:
+        """A point at least ``sidestep_gain_m`` nearer ``wp`` that a straight line reaches
+        through the newest scan's free space, clear of its returns as a leg must be; the one
+        nearest ``wp``, None when there is none. It trusts the scan alone: the map's views along
+        a narrow corridor may each have drifted a little, and together leave no way through."""
+        if self._live_view is None or self._live.shape[0] == 0:
+            return None
+        p = self.params
+        dist = float(np.hypot(*(wp - here)))
+        bearing = float(np.arctan2(*(wp - here)[::-1]))
+        turns = np.deg2rad(np.arange(-p.sidestep_max_deg, p.sidestep_max_deg + 1e-9, p.sidestep_step_deg))
+        lengths = np.array([m for m in p.sidestep_lengths_m if m <= dist + p.goal_reached_m])
+        if lengths.size == 0:
+            return None
+        angle = bearing + np.repeat(turns, lengths.size)
+        length = np.tile(lengths, turns.size)
+        aims = here + np.column_stack((length * np.cos(angle), length * np.sin(angle)))
+        gain = dist - np.hypot(*(wp - aims).T)
+        ok = gain >= min(p.sidestep_gain_m, 0.5 * dist)
+        ok &= _segment_clearances(here, aims, self._live) >= max(self._leg_required(required), self._live_floor_m)
+        gap = aims[:, None, :] - self._live[None, :, :]
+        ok &= np.hypot(gap[..., 0], gap[..., 1]).min(axis=1) >= p.goal_clearance_m
+        if not ok.any():
+            return None
+        live = self._live_view()
+        idx = np.flatnonzero(ok)
+        idx = idx[np.argsort(-gain[idx], kind="stable")]
+        lead = here + 0.05 * np.column_stack((np.cos(angle[idx]), np.sin(angle[idx])))
+        lines = shapely.linestrings(np.stack((lead, aims[idx]), axis=1))
+        inside = shapely.covers(live, lines)
+        if not inside.any():
+            return None
+        return np.asarray(aims[idx[int(np.argmax(inside))]], dtype=np.float64)
 
     def _approach(self, local_map: LocalMap, frame_id: int, view: LocalView, here: FloatArray) -> _Candidate | None:
         """A step towards the keyframe's frontier (not set aside) that the free space leads

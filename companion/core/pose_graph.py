@@ -104,8 +104,14 @@ class PoseGraph:
             raise GraphError("an edge transform must be finite")
         edge = GraphEdge(from_id, to_id, from_to, kind)
         self._edges.append(edge)
-        self._adjacency[from_id].append((to_id, from_to))
-        self._adjacency[to_id].append((from_id, from_to.inverse()))
+        if kind is EdgeType.LOOP_CLOSURE:
+            # Walks try loop closures first: a measured relative pose, where the chain of odometry
+            # edges it shortcuts carries every metre's drift.
+            self._adjacency[from_id].insert(0, (to_id, from_to))
+            self._adjacency[to_id].insert(0, (from_id, from_to.inverse()))
+        else:
+            self._adjacency[from_id].append((to_id, from_to))
+            self._adjacency[to_id].append((from_id, from_to.inverse()))
         return edge
 
     def neighbours(self, keyframe_id: int) -> list[tuple[int, Pose2]]:
