@@ -13,7 +13,19 @@ from tests.conftest import square, write_map
 
 def test_shipped_maps_load(shipped_maps):
     paths = sorted(shipped_maps.glob("*.geojson"))
-    assert {p.stem for p in paths} >= {"room", "office", "loop", "warehouse", "lshape", "maze", "clutter", "hotel"}
+    assert {p.stem for p in paths} >= {
+        "room",
+        "office",
+        "loop",
+        "warehouse",
+        "lshape",
+        "maze",
+        "clutter",
+        "hotel",
+        "hall",
+        "rotunda",
+        "longhall",
+    }
     for path in paths:
         w = load_world(path)
         assert w.name == path.stem and w.free.area > 50.0
