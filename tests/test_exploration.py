@@ -167,6 +167,28 @@ def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
     assert ex.relocalized == before
 
 
+def test_stalled_on_a_route_a_loop_closure_with_no_keyframe_near_its_moment_asks_for_one():
+    """A vehicle stalled on a route takes no view, so after a few seconds no loop closure finds a
+    keyframe near its current moment to join, and none relocalises it. The first such closure
+    makes the next scan a keyframe, hovering or not; the closure after that relocalises."""
+    ex = Explorer()
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    for i in range(6):
+        ex.step(Odometry(float(i), Pose2(1.2 * i, 0.0, 0.0)), scan(float(i)))
+    for k in range(1, 80):  # hovering for 8 s
+        ex.step(Odometry(5.0 + 0.1 * k, Pose2(6.0, 0.0, 0.0)))
+    keyframes = len(ex.map)
+    ex._last_mode = Mode.BACKTRACKING
+    assert not ex._apply_loop_closure(LoopClosure(1.0, 12.9, Pose2(4.8, 0.3, 0.0)))
+    assert ex.relocalized == 0
+    ex._last_mode = Mode.BACKTRACKING
+    assert ex.step(Odometry(13.0, Pose2(6.0, 0.0, 0.0)), scan(13.0)).keyframe_added
+    assert len(ex.map) == keyframes + 1
+    ex._last_mode = Mode.BACKTRACKING
+    assert ex._apply_loop_closure(LoopClosure(1.0, 13.0, Pose2(4.8, 0.3, 0.0)))
+    assert ex.relocalized == 1
+
+
 def test_a_loop_closure_joins_the_keyframe_whose_view_holds_the_moment_not_merely_the_nearest_in_time():
     """The vehicle flies east, then turns north at x = 3.6 m. A moment just before the turn lies
     behind the north-facing keyframe's view (which is nearer in time) but inside the east-facing

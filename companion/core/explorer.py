@@ -151,6 +151,7 @@ class Explorer:
         self.loop_closures_rejected = 0
         self.relocalized = 0  # times a loop closure relocalised the vehicle (see _relocalize)
         self._want_keyframe = False
+        self._need_keyframe = False  # a loop closure found no keyframe near its moment (see there)
         self._last_odom: Odometry | None = None
         self._last_mode = Mode.EXPLORING
         self._pending_closures: list[LoopClosure] = []
@@ -281,6 +282,10 @@ class Explorer:
         a = self._keyframe_near(closure.earlier_stamp_s, pe, gap)
         b = self._keyframe_near(closure.current_stamp_s, pc, gap)
         if a is None or b is None or a == b:
+            if a is not None and b is None and self._last_mode is Mode.BACKTRACKING:
+                # Stalled on a route, the vehicle takes no view, so no closure finds a keyframe
+                # near its moment and none relocalises it: take one now for the next.
+                self._need_keyframe = True
             self.loop_closures_rejected += 1
             return False
         ka, kb = self.map.keyframes[a], self.map.keyframes[b]
@@ -383,6 +388,7 @@ class Explorer:
             due = dist >= limit or (not backtracking and turn >= p.keyframe_angle_rad)
             if self._want_keyframe and (dist > 0.2 or turn > 0.15):
                 due = True
+            due = due or self._need_keyframe
             if not due:
                 return False
         polygon = scan_to_polygon(scan, p.polygon)
@@ -396,6 +402,7 @@ class Explorer:
         self.current_id = kf.keyframe_id
         self.anchor = pose
         self._want_keyframe = False
+        self._need_keyframe = False
         return True
 
 
