@@ -15,9 +15,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.core.explorer import Explorer, ExplorerParams
+from companion.core.fov_polygon import PolygonParams, returns_xy
 from companion.core.geometry import Pose2
 from companion.core.messages import Setpoint
-from companion.core.planner import Mode
+from companion.core.planner import Mode, PlannerParams
+from companion.core.setpoint_lead import LeadParams, limit_lead
 from sitl.coverage import CoverageGrid
 from sitl.drift import DriftParams
 from sitl.grid_explorer import GridExplorer
@@ -55,15 +57,28 @@ class PolygonPolicy:
 
 
 class GridPolicy:
-    """The perfect-pose grid baseline (it reads the true pose, as in the thesis)."""
+    """The perfect-pose grid baseline (it reads the true pose, as in the thesis). Its setpoints
+    go through the same lead limit as the product's (the newest scan's returns, true frame):
+    the same vehicle, with the same speed limit near what it sees."""
 
     def __init__(self, world: World) -> None:
         self.explorer = GridExplorer(world.bounds)
         self.step_ms: list[float] = []
+        self.lead = LeadParams()
+        self._last: tuple[float, Pose2] | None = None
 
     def step(self, frame: SensorFrame) -> Setpoint | None:
         t0 = time.perf_counter()
-        sp = self.explorer.step(frame.true_pose, frame.scan)
+        pose = frame.true_pose
+        sp = self.explorer.step(pose, frame.scan)
+        if sp is not None:
+            velocity = (0.0, 0.0)
+            if self._last is not None and frame.stamp_s > self._last[0]:
+                dt = frame.stamp_s - self._last[0]
+                velocity = ((pose.x_m - self._last[1].x_m) / dt, (pose.y_m - self._last[1].y_m) / dt)
+            returns = pose.apply(returns_xy(frame.scan, PolygonParams().frontier_range_tolerance_m))
+            sp = limit_lead(sp, pose, velocity, returns, PlannerParams().body_radius_m, self.lead)
+        self._last = (frame.stamp_s, pose)
         self.step_ms.append((time.perf_counter() - t0) * 1e3)
         return sp
 

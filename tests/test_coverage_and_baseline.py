@@ -2,10 +2,13 @@ import math
 
 import numpy as np
 
-from companion.core.geometry import Pose2
+from companion.core.fov_polygon import returns_xy
+from companion.core.geometry import Pose2, free_travel_m
+from companion.core.planner import PlannerParams
 from sitl.coverage import CoverageGrid
 from sitl.grid_explorer import FREE, OCCUPIED, UNKNOWN, GridExplorer
-from sitl.runner import run_exploration
+from sitl.runner import GridPolicy, run_exploration
+from sitl.simulation import SimParams, Simulation
 from sitl.world import load_world
 from tests.conftest import square, write_map
 
@@ -55,3 +58,24 @@ def test_grid_baseline_replans_when_braking_left_it_behind_a_wall_end():
     cells = [ex._cell(x, y) for x, y in zip(xs, ys, strict=True)]
     assert all(ex.grid[c] != OCCUPIED for c in cells)
     assert ex._path[0] != (2.0, 2.0)
+
+
+def test_grid_baseline_setpoints_go_through_the_same_lead_limit_as_the_products(small_room):
+    """The yardstick flies the same vehicle: its setpoints lead by at most the lead limit and stop
+    short of what the newest scan shows (it once swung into a pillar at speed on hall seed 2)."""
+    world = load_world(small_room)
+    policy = GridPolicy(world)
+    sim = Simulation(world, SimParams(), seed=1)
+    frame = sim.frame()
+    for _ in range(40):
+        sp = policy.step(frame)
+        assert sp is not None
+        pose = frame.true_pose
+        lead = math.hypot(sp.x_m - pose.x_m, sp.y_m - pose.y_m)
+        assert lead <= policy.lead.max_lead_m + 1e-9
+        returns = pose.apply(returns_xy(frame.scan, 0.02)) - [pose.x_m, pose.y_m]
+        direction = (sp.x_m - pose.x_m, sp.y_m - pose.y_m)
+        if lead > 1e-6:
+            touch = PlannerParams().body_radius_m + policy.lead.contact_margin_m
+            assert free_travel_m(returns, direction, min(touch, 0.95 * float(np.min(np.hypot(*returns.T))))) >= lead
+        frame = sim.advance(Pose2(sp.x_m, sp.y_m, sp.yaw_rad))

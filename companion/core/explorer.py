@@ -19,7 +19,7 @@ import shapely
 from numpy.typing import NDArray
 
 from companion.core.errors import CoreError
-from companion.core.fov_polygon import PolygonParams, has_return, on_scanned_surface, scan_to_polygon, seen_free
+from companion.core.fov_polygon import PolygonParams, on_scanned_surface, returns_xy, scan_to_polygon, seen_free
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
@@ -177,7 +177,7 @@ class Explorer:
         self._last_odom = odom
         added = False
         if scan is not None:
-            returns = _returns_xy(scan, self.params.polygon.frontier_range_tolerance_m)
+            returns = returns_xy(scan, self.params.polygon.frontier_range_tolerance_m)
             pose_at_scan = self.history.at(scan.stamp_s) or odom.pose
             self._live = (pose_at_scan, returns, scan)
             self._recent.add(scan.stamp_s, self._travelled_m, pose_at_scan.apply(returns))
@@ -404,10 +404,3 @@ class Explorer:
         self._want_keyframe = False
         self._need_keyframe = False
         return True
-
-
-def _returns_xy(scan: DepthScan, no_return_margin_m: float) -> FloatArray:
-    """The scan's obstacle returns (see :func:`has_return`) as body-frame points."""
-    ok = has_return(scan, no_return_margin_m)
-    r, b = scan.ranges_m[ok], scan.bearings_rad[ok]
-    return np.column_stack((r * np.cos(b), r * np.sin(b)))

@@ -253,6 +253,13 @@ def has_return(scan: DepthScan, no_return_margin_m: float) -> NDArray[np.bool_]:
     return hit
 
 
+def returns_xy(scan: DepthScan, no_return_margin_m: float) -> FloatArray:
+    """The scan's obstacle returns (see :func:`has_return`) as body-frame points."""
+    ok = has_return(scan, no_return_margin_m)
+    r, b = scan.ranges_m[ok], scan.bearings_rad[ok]
+    return np.column_stack((r * np.cos(b), r * np.sin(b)))
+
+
 def _nearest_rays(
     scan: DepthScan, sensor: Pose2, points_xy: FloatArray
 ) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.bool_]]:
