@@ -84,7 +84,9 @@ def test_px4_falls_back_to_hold_when_the_companion_stops_streaming(tmp_path: Pat
 def test_companion_run_explores_room_over_mavlink_with_zenoh_loop_closures(tmp_path: Path, autopilot: str) -> None:
     """Odometry and scans over MAVLink (ODOMETRY on PX4; LOCAL_POSITION_NED + ATTITUDE on
     ArduPilot, which has no ODOMETRY; OBSTACLE_DISTANCE), loop closures from the SLAM back end
-    over Zenoh: full coverage."""
+    over Zenoh: full coverage. Over the wire room takes 280-490 s of vehicle time (ten runs in
+    session 12; in-process 130-170 s), and one run in about twelve needed more than 600 s: the
+    limit is 900 s."""
     sitl_report = tmp_path / "sitl.json"
     report = tmp_path / "companion.json"
     zenoh_port = free_port(socket.SOCK_STREAM)
@@ -95,9 +97,9 @@ def test_companion_run_explores_room_over_mavlink_with_zenoh_loop_closures(tmp_p
             f"vehicle:\n  mavlink: {url}\n  setpoint_rate_hz: {20 * EXPLORE_SPEEDUP}\n  arm_timeout_s: 30\n"
             "inputs:\n  odometry: mavlink\n  scan: mavlink\n  loop_closure: zenoh\n"
             f"zenoh:\n  connect: [tcp/127.0.0.1:{zenoh_port}]\n"
-            "exploration:\n  max_time_s: 600\n"
+            "exploration:\n  max_time_s: 900\n"
         )
-        run = run_companion(config, report, 240)
+        run = run_companion(config, report, 300)
         assert report.exists(), run.stderr[-3000:]
         time.sleep(0.5)
     result = _explored(sitl_report, report, run, min_coverage=0.99)
