@@ -4,6 +4,7 @@ piped into the test log, always stopped."""
 from __future__ import annotations
 
 import logging
+import random
 import socket
 import subprocess
 import sys
@@ -17,9 +18,27 @@ log = logging.getLogger("tests.subprocess")
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A free loopback port below the kernel's ephemeral range: a port the kernel handed out and
+    took back is its to give again, and a `udpout:` socket opened meanwhile (the simulated
+    vehicle's, say) could be bound to it before the companion binds it."""
+    high = _ephemeral_low()
+    low = 20000 if high > 21000 else 1024
+    for _ in range(200):
+        port = random.randrange(low, high)
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free loopback port below the ephemeral range")
+
+
+def _ephemeral_low() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
 
 
 def _pipe(stream: object, name: str) -> None:
