@@ -288,13 +288,13 @@ class Explorer:
                 self._need_keyframe = True
             self.loop_closures_rejected += 1
             return False
-        ka, kb = self.map.keyframes[a], self.map.keyframes[b]
-        a_to_b = ka.odom_pose.between(pe).compose(closure.earlier_to_current).compose(pc.between(kb.odom_pose))
-        old = a
-        if a > b:
-            a, b, a_to_b = b, a, a_to_b.inverse()
-        self.map.add_loop_closure(a, b, a_to_b)
-        self._relocalize(old, ka.odom_pose.between(pe).compose(closure.earlier_to_current), closure.current_stamp_s)
+        current_in_a = self.map.keyframes[a].odom_pose.between(pe).compose(closure.earlier_to_current)
+        a_to_b = current_in_a.compose(pc.between(self.map.keyframes[b].odom_pose))
+        if a < b:
+            self.map.add_loop_closure(a, b, a_to_b)
+        else:
+            self.map.add_loop_closure(b, a, a_to_b.inverse())
+        self._relocalize(a, current_in_a, closure.current_stamp_s)
         return True
 
     def _relocalize(self, keyframe_id: int, current_in_keyframe: Pose2, stamp_s: float) -> None:

@@ -558,10 +558,7 @@ class FrontierPlanner:
         # The start may be closer to a wall than the clearance (so the vehicle can always move
         # away); the end may not, or a vehicle near a wall would creep along closer and closer.
         end = self.params.goal_clearance_m
-        if self._live.shape[0]:
-            ok &= _segment_clearances(start, goals, self._live) >= max(required, self._live_floor_m)
-            gap = goals[:, None, :] - self._live[None, :, :]
-            ok &= np.hypot(gap[..., 0], gap[..., 1]).min(axis=1) >= end
+        ok &= self._clear_of_live(start, goals, required)
         paths = shapely.linestrings(np.stack((np.broadcast_to(start, goals.shape), goals), axis=1))
         if not view.obstacles.is_empty:
             ok &= shapely.distance(shapely.points(goals), view.obstacles) >= end
@@ -580,6 +577,16 @@ class FrontierPlanner:
             if view.covers(shapely.LineString([lead, goals[i]])):
                 return int(i)
         return None
+
+    def _clear_of_live(self, start: FloatArray, goals: FloatArray, required: float) -> NDArray[np.bool_]:
+        """For each straight path from ``start`` to one of the goals (K, 2): clear of the newest
+        returns by ``required`` (at least the live floor), its end by ``goal_clearance_m``."""
+        if self._live.shape[0] == 0:
+            return np.ones(goals.shape[0], dtype=bool)
+        ok = _segment_clearances(start, goals, self._live) >= max(required, self._live_floor_m)
+        gap = goals[:, None, :] - self._live[None, :, :]
+        ok &= np.hypot(gap[..., 0], gap[..., 1]).min(axis=1) >= self.params.goal_clearance_m
+        return ok
 
     # -- classical fallback (2.9.3) -------------------------------------------------------------
 
@@ -721,9 +728,7 @@ class FrontierPlanner:
         aims = here + np.column_stack((length * np.cos(angle), length * np.sin(angle)))
         gain = dist - np.hypot(*(wp - aims).T)
         ok = gain >= min(p.sidestep_gain_m, 0.5 * dist)
-        ok &= _segment_clearances(here, aims, self._live) >= max(self._leg_required(required), self._live_floor_m)
-        gap = aims[:, None, :] - self._live[None, :, :]
-        ok &= np.hypot(gap[..., 0], gap[..., 1]).min(axis=1) >= p.goal_clearance_m
+        ok &= self._clear_of_live(here, aims, self._leg_required(required))
         if not ok.any():
             return None
         live = self._live_view()
