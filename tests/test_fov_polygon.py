@@ -10,6 +10,7 @@ from companion.core.errors import ScanError
 from companion.core.fov_polygon import PolygonParams, VertexKind, on_scanned_surface, scan_to_polygon
 from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan
+from sitl.depth_sensor import cast_rays
 
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
 
@@ -85,6 +86,42 @@ def test_a_short_shadow_edge_gets_a_frontier_vertex_in_its_middle_off_the_occlud
         if k == VertexKind.FRONTIER and np.isclose(math.atan2(v[1], v[0]), BEARINGS[30])
     ]
     assert sorted(on_edge) == pytest.approx([3.0, 3.55])
+
+
+def _grazing_wall_scan(door: tuple[float, float] | None) -> DepthScan:
+    """A 0.2 m thick wall along y = 0.4 on the left, seen from the origin looking along x (rays
+    land 0.5-0.8 m apart on it 2.5-3.5 m out), with an optional door in it and a room behind."""
+    x0, x1 = door or (30.0, 30.0)
+    walls = [((-1.0, 0.4), (x0, 0.4)), ((x1, 0.4), (30.0, 0.4)), ((-1.0, 3.0), (30.0, 3.0))]
+    if door is not None:
+        walls += [((x0, 0.4), (x0, 0.6)), ((x1, 0.4), (x1, 0.6)), ((-1.0, 0.6), (x0, 0.6)), ((x1, 0.6), (30.0, 0.6))]
+    r = cast_rays(np.zeros(2), BEARINGS, np.array(walls, dtype=float), 5.0)
+    return scan(np.where(np.isfinite(r), r, 5.0))
+
+
+def _shadow_vertices(poly, x_range: tuple[float, float]) -> np.ndarray:
+    """Frontier vertices short of the range limit on the left (y > 0.1) within ``x_range``."""
+    v = poly.vertices_xy
+    pick = (poly.kinds == VertexKind.FRONTIER) & (np.hypot(v[:, 0], v[:, 1]) < 4.9) & (v[:, 1] > 0.1)
+    pick &= (v[:, 0] >= x_range[0]) & (v[:, 0] <= x_range[1])
+    return v[pick]
+
+
+def test_a_wall_seen_at_a_grazing_angle_is_one_surface_not_occlusions():
+    """Rays landing far apart along one straight wall jump in range, but nothing is hidden
+    between them: no frontier vertex along the wall (a flight to one finds only the wall)."""
+    wall = _grazing_wall_scan(None)
+    # Up to x = 3.4 m; farther on, the wall runs out of the sensor's range: unknown, rightly.
+    assert _shadow_vertices(scan_to_polygon(wall), (0.0, 3.4)).shape[0] == 0
+    as_occlusions = scan_to_polygon(wall, PolygonParams(grazing_max_gap_m=0.0))
+    assert _shadow_vertices(as_occlusions, (0.0, 3.4)).shape[0] > 0
+
+
+def test_a_door_in_a_wall_seen_at_a_grazing_angle_stays_an_occlusion():
+    """The ray into a 1 m door lands on the far jamb, within the wall's thickness of its line
+    but a door's width along it: the room behind stays unknown, behind a frontier."""
+    poly = scan_to_polygon(_grazing_wall_scan((2.4, 3.4)))
+    assert _shadow_vertices(poly, (2.0, 3.4)).shape[0] > 0
 
 
 def test_invalid_returns_never_become_walls_at_zero():

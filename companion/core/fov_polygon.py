@@ -41,6 +41,11 @@ class PolygonParams:
     """Tuning for :func:`scan_to_polygon`."""
 
     occlusion_threshold_m: float = 0.5
+    # A range jump between two returns on one straight surface (each within the tolerance of the
+    # line its other neighbours draw) no farther apart than this is that surface seen at a grazing
+    # angle, not an occlusion: no opening that wide can hide between them (0 disables).
+    grazing_max_gap_m: float = 0.8
+    grazing_line_tol_m: float = 0.06
     # An occlusion's shadow edge runs along the farther ray; frontier vertices along it at this
     # spacing keep the whole edge open until views cover each part, not just its near end.
     occlusion_frontier_spacing_m: float = 1.0
@@ -110,8 +115,54 @@ def _classify_ranges(scan: DepthScan, tol_m: float) -> tuple[FloatArray, NDArray
     return ranges.astype(np.float64), frontier
 
 
+def _grazing(
+    bearings: FloatArray,
+    ranges: FloatArray,
+    frontier: NDArray[np.bool_],
+    jumps: NDArray[np.intp],
+    max_gap_m: float,
+    tol_m: float,
+) -> NDArray[np.bool_]:
+    """Which range jumps (between ray i and i+1) are one straight surface seen at a grazing
+    angle: rays i-1 to i+2 all returned, i and i+1 at most ``max_gap_m`` apart, and each of the
+    two lies within ``tol_m`` of the line through the other's outer neighbour and the other. Range
+    noise runs along the ray, nearly along such a surface, so the test across it is tight. A ray
+    into an opening of the surface lands beyond the line or (in a thick wall) on the far jamb, as
+    far along the line as the opening is wide: no opening wider than ``max_gap_m`` is taken for
+    surface. Tried and dropped: testing one side only where the other's outer ray ran out of
+    range (lshape 5 then set a room's frontiers aside, at coverage 0.980)."""
+    out = np.zeros(jumps.size, dtype=bool)
+    if max_gap_m <= 0.0 or jumps.size == 0:
+        return out
+    pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
+    n = ranges.size
+    inner = (jumps >= 1) & (jumps + 2 < n)
+    j = jumps[inner]
+    if j.size == 0:
+        return out
+    returned = ~(frontier[j - 1] | frontier[j] | frontier[j + 1] | frontier[j + 2])
+    a, b, c, d = pts[j - 1], pts[j], pts[j + 1], pts[j + 2]
+    close = np.hypot(*(c - b).T) <= max_gap_m
+    ok = returned & close & (_off_line(a, b, c) <= tol_m) & (_off_line(d, c, b) <= tol_m)
+    out[np.flatnonzero(inner)] = ok
+    return out
+
+
+def _off_line(a: FloatArray, b: FloatArray, p: FloatArray) -> FloatArray:
+    """Distance of each point ``p`` from the line through ``a`` and ``b`` (rows)."""
+    ab = b - a
+    cross = ab[:, 0] * (p - a)[:, 1] - ab[:, 1] * (p - a)[:, 0]
+    return np.abs(cross) / np.maximum(np.hypot(ab[:, 0], ab[:, 1]), 1e-9)
+
+
 def _insert_occlusions(
-    bearings: FloatArray, ranges: FloatArray, frontier: NDArray[np.bool_], threshold_m: float, spacing_m: float
+    bearings: FloatArray,
+    ranges: FloatArray,
+    frontier: NDArray[np.bool_],
+    threshold_m: float,
+    spacing_m: float,
+    grazing_max_gap_m: float = 0.0,
+    grazing_tol_m: float = 0.0,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """Insert frontier vertices at each range jump (thesis eq. 2.4).
 
@@ -138,6 +189,7 @@ def _insert_occlusions(
             ranges[end] = ranges[inner]
             frontier[end] = True
     jumps = np.flatnonzero(np.abs(np.diff(ranges)) > threshold_m)
+    jumps = jumps[~_grazing(bearings, ranges, frontier, jumps, grazing_max_gap_m, grazing_tol_m)]
     if jumps.size == 0:
         return bearings, ranges, frontier
     b_out: list[float] = []
@@ -198,7 +250,13 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     p = params or PolygonParams()
     ranges, frontier = _classify_ranges(scan, p.frontier_range_tolerance_m)
     bearings, ranges, frontier = _insert_occlusions(
-        scan.bearings_rad, ranges, frontier, p.occlusion_threshold_m, p.occlusion_frontier_spacing_m
+        scan.bearings_rad,
+        ranges,
+        frontier,
+        p.occlusion_threshold_m,
+        p.occlusion_frontier_spacing_m,
+        p.grazing_max_gap_m,
+        p.grazing_line_tol_m,
     )
     pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
     keep = _subsample(pts, frontier, p.min_vertex_spacing_m)
