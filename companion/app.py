@@ -155,6 +155,7 @@ def _publisher(outputs: Any, drops: Any) -> Any:
             "odometry_count": h.odometry_count,
             "scan_count": h.scan_count,
             "loop_closure_count": h.loop_closure_count,
+            "scans_ahead_of_odometry": h.scans_ahead_of_odometry,
             "rejected": {**h.rejected, **(drops.counts if drops is not None else {})},
             "step_ms_last": round(service.step_ms[-1], 3) if service.step_ms else None,
         }

@@ -49,6 +49,10 @@ class ServiceSettings:
     max_time_s: float = 1800.0
     on_stop: str = "land"
     progress_period_s: float = 10.0
+    # A scan newer than the newest odometry waits this long (wall time) for odometry to reach its
+    # stamp (ArduPilot's pose comes in two messages, paired once both are in): the map places a
+    # scan by the pose at its own stamp and would otherwise take it a step later.
+    scan_odometry_wait_s: float = 0.2
 
 
 @dataclass
@@ -59,6 +63,7 @@ class Health:
     odometry_count: int = 0
     scan_count: int = 0
     loop_closure_count: int = 0
+    scans_ahead_of_odometry: int = 0  # scans whose odometry did not come within the wait
     rejected: dict[str, int] = field(default_factory=dict)
     last_odometry_wall_s: float = -math.inf
     last_scan_wall_s: float = -math.inf
@@ -199,8 +204,11 @@ class Service:
             if not self.control.in_control():
                 self._lost_control = True
                 raise CompanionError("the vehicle left the companion's control (disarmed, crashed or mode changed)")
-            odom, scan = self._odom, self._scan
-            assert odom is not None and scan is not None
+            scan = self._scan
+            assert scan is not None
+            await self._odometry_reaching(scan.stamp_s)
+            odom = self._odom
+            assert odom is not None
             self._scan = None
             closures, self._closures = self._closures, []
             # The step runs in a worker thread so the setpoint stream never waits on it.
@@ -225,6 +233,17 @@ class Service:
                 self.on_status(self)
             if odom.stamp_s - self._first_odom.stamp_s > self.settings.max_time_s:
                 return "timeout"
+
+    async def _odometry_reaching(self, stamp_s: float) -> None:
+        """Give the odometry a moment (``scan_odometry_wait_s``) to reach a scan's stamp, unless
+        the scan is further ahead than the explorer would wait for (another clock)."""
+        ahead_limit_s = self.explorer.params.scan_odometry_wait_s
+        end = time.monotonic() + self.settings.scan_odometry_wait_s
+        while (odom := self._odom) is not None and 1e-6 < stamp_s - odom.stamp_s <= ahead_limit_s:
+            if time.monotonic() >= end:
+                self.health.scans_ahead_of_odometry += 1
+                return
+            await asyncio.sleep(0.002)
 
     def _step(self, odom: Odometry, scan: DepthScan, closures: list[LoopClosure]) -> StepResult:
         t0 = time.perf_counter()
@@ -276,6 +295,7 @@ class Service:
                 "scans": self.health.scan_count,
                 "loop_closures": self.health.loop_closure_count,
                 "rejected": dict(self.health.rejected),
+                "scans_ahead_of_odometry": self.health.scans_ahead_of_odometry,
             },
             "step_ms": {
                 "p50": round(float(np.percentile(steps, 50)), 3),

@@ -137,6 +137,24 @@ def test_explorer_turns_a_loop_closure_into_a_graph_edge():
     assert ex.map.loop_closures == 2
 
 
+def test_a_scan_newer_than_the_odometry_waits_for_the_pose_at_its_own_stamp():
+    """ArduPilot's pose comes in two messages, so a scan can arrive before the odometry for its
+    moment: placed by the older pose, a turning vehicle's polygon swings by metres at its far
+    end. The explorer holds it until odometry reaches its stamp; a scan far ahead (another
+    clock) is not held for ever."""
+    ex = Explorer()
+    open_scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), open_scan(0.1))
+    assert len(ex.map) == 0  # no pose for t = 0.1 yet
+    at_scan = Pose2(0.15, 0.02, 0.2)
+    result = ex.step(Odometry(0.1, at_scan))
+    assert result.keyframe_added and len(ex.map) == 1
+    assert ex.map.keyframes[0].odom_pose == at_scan
+    other_clock = Explorer()
+    result = other_clock.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), open_scan(3.0))
+    assert result.keyframe_added and other_clock.map.keyframes[0].odom_pose == Pose2(0.0, 0.0, 0.0)
+
+
 @pytest.mark.parametrize("mode", [Mode.BACKTRACKING, Mode.EXPLORING])
 def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
     """Odometry says the vehicle flew 4.8 m east of the keyframe at x = 1.2 m; the SLAM back end

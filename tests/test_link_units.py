@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 from pathlib import Path
 
@@ -163,6 +164,44 @@ def test_service_lands_when_scans_go_stale() -> None:
     assert fake.targets, "it flew before the scans stopped"
     assert report["termination"] == "error" and "scans stale" in report["reason"]
     assert service.health.state is MissionState.FAILED
+
+
+def test_service_steps_a_scan_with_the_odometry_of_its_moment_even_when_that_comes_later() -> None:
+    """The scan for t = 1 arrives before the odometry for t = 1 (as ArduPilot's pose, paired
+    from two messages, does): the step waits for it, so the view is taken at once, not a scan
+    later."""
+
+    async def scenario() -> tuple[Service, int]:
+        fake = FakeVehicle()
+        service = Service(ServiceSettings(input_timeout_s=1.0, startup_timeout_s=2.0), [fake], fake)
+        task = asyncio.create_task(service.run())
+        await asyncio.sleep(0)
+        on_odom, on_scan = fake.handlers
+        on_odom(Odometry(0.0, Pose2(0.0, 0.0, 0.0)))
+        on_scan(_scan(0.0))
+        for _ in range(50):
+            await asyncio.sleep(0.01)
+            if service.step_ms:
+                break
+        on_odom(Odometry(0.9, Pose2(1.4, 0.0, 0.0)))
+        on_scan(_scan(1.0))  # the first view is 1.5 m behind: a keyframe is due at t = 1
+        await asyncio.sleep(0.02)
+        on_odom(Odometry(1.0, Pose2(1.5, 0.0, 0.0)))
+        steps = len(service.step_ms)
+        for _ in range(50):
+            await asyncio.sleep(0.01)
+            if len(service.step_ms) > steps:
+                break
+        keyframes = len(service.explorer.map)
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        return service, keyframes
+
+    service, keyframes = asyncio.run(scenario())
+    assert keyframes == 2
+    assert service.explorer.map.keyframes[1].odom_pose == Pose2(1.5, 0.0, 0.0)
+    assert service.health.scans_ahead_of_odometry == 0
 
 
 def test_service_never_takes_off_without_inputs() -> None:

@@ -47,6 +47,10 @@ class ExplorerParams:
     # old place it recognised (see Explorer._relocalize).
     relocalize_on_loop_closure: bool = True
     relocalize_max_age_s: float = 1.0
+    # A scan stamped after the newest odometry waits (up to this long ahead of it) for odometry
+    # that reaches its stamp: placed by an older pose, a scan's polygon is off by the motion
+    # since, and a turn swings its far end by metres (one 0.1 s lag tripled a room's time).
+    scan_odometry_wait_s: float = 0.5
     obstacle_memory_s: float = 5.0
     obstacle_memory_m: float = 1.5
     obstacle_seen_through_m: float = 0.1
@@ -160,6 +164,7 @@ class Explorer:
         self._travelled_m = 0.0  # odometry path length, to age the recent returns by
         self._obstacles_xy: FloatArray = np.zeros((0, 2))  # recent returns for this step, odometry frame
         self._keyframe_stamps: tuple[list[float], list[int]] = ([], [])  # sorted by stamp, for closures
+        self._waiting_scan: DepthScan | None = None  # newer than the odometry so far (see step)
 
     @property
     def mode(self) -> Mode:
@@ -175,6 +180,7 @@ class Explorer:
         self._handle_reset(odom)
         self.history.append(odom)
         self._last_odom = odom
+        scan = self._scan_with_odometry(scan)
         added = False
         if scan is not None:
             returns = returns_xy(scan, self.params.polygon.frontier_range_tolerance_m)
@@ -321,6 +327,24 @@ class Explorer:
         self.relocalized += 1
 
     # -- internals -------------------------------------------------------------------------------
+
+    def _scan_with_odometry(self, scan: DepthScan | None) -> DepthScan | None:
+        """The newest scan the odometry so far reaches (its pose at the scan's stamp is known);
+        a newer one waits for a later step. One too far ahead of the odometry (another clock,
+        or odometry that stalled) is taken with the newest pose rather than held for ever."""
+        newest = self.history.newest_stamp()
+        assert newest is not None
+        ready: DepthScan | None = None
+        for s in (self._waiting_scan, scan):
+            if s is None:
+                continue
+            ahead_s = s.stamp_s - newest
+            if ahead_s <= 1e-6 or ahead_s > self.params.scan_odometry_wait_s:
+                ready = s
+                self._waiting_scan = None
+            else:
+                self._waiting_scan = s
+        return ready
 
     def _handle_reset(self, odom: Odometry) -> None:
         last = self._last_odom
