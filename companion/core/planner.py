@@ -493,21 +493,30 @@ class FrontierPlanner:
             )
             if first is not None:
                 return candidates[first]
-        candidates = [c for c in candidates if self._open_through_graph(local_map, c.key)]
         # No straight path: look for paths through the known free space (a frontier seen through a
-        # door at an angle). Once per view and place, unless asked at a keyframe's origin.
+        # door at an angle). Once per view and place, unless asked at a keyframe's origin. The
+        # graph is checked candidate by candidate, up to the first with a path (each check may
+        # walk the whole pose graph; together they were a quarter of the dearest steps).
         tried = (view, math.floor(here[0]), math.floor(here[1]))
         last = self._grid_tried
-        if not candidates or (not dense and last is not None and last[0] is view and last[1:] == tried[1:]):
+        if not dense and last is not None and last[0] is view and last[1:] == tried[1:]:
             return None
-        reach = self._reach(view, here)
-        if reach is not None:
-            for c in candidates:
-                path = reach.path_to(c.goal_xy)
-                if path is not None:
-                    c.path = path
-                    return c
-        self._grid_tried = tried
+        reach: Reach | None = None
+        searched = False
+        for c in candidates:
+            if not self._open_through_graph(local_map, c.key):
+                continue
+            if not searched:
+                searched = True
+                reach = self._reach(view, here)
+            if reach is None:
+                break
+            path = reach.path_to(c.goal_xy)
+            if path is not None:
+                c.path = path
+                return c
+        if searched:
+            self._grid_tried = tried
         return None
 
     def _open_through_graph(self, local_map: LocalMap, key: FrontierKey) -> bool:
