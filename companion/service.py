@@ -204,12 +204,13 @@ class Service:
             if not self.control.in_control():
                 self._lost_control = True
                 raise CompanionError("the vehicle left the companion's control (disarmed, crashed or mode changed)")
-            scan = self._scan
-            assert scan is not None
+            scan, self._scan = self._scan, None
+            if scan is None:  # the event outlived its scan (taken by the previous step)
+                continue
+            # A scan arriving during this wait stays for the next step.
             await self._odometry_reaching(scan.stamp_s)
             odom = self._odom
             assert odom is not None
-            self._scan = None
             closures, self._closures = self._closures, []
             # The step runs in a worker thread so the setpoint stream never waits on it.
             result = await asyncio.to_thread(self._step, odom, scan, closures)

@@ -171,7 +171,7 @@ def test_service_steps_a_scan_with_the_odometry_of_its_moment_even_when_that_com
     from two messages, does): the step waits for it, so the view is taken at once, not a scan
     later."""
 
-    async def scenario() -> tuple[Service, int]:
+    async def scenario() -> tuple[Service, int, int]:
         fake = FakeVehicle()
         service = Service(ServiceSettings(input_timeout_s=1.0, startup_timeout_s=2.0), [fake], fake)
         task = asyncio.create_task(service.run())
@@ -183,24 +183,34 @@ def test_service_steps_a_scan_with_the_odometry_of_its_moment_even_when_that_com
             await asyncio.sleep(0.01)
             if service.step_ms:
                 break
+        steps = len(service.step_ms)
         on_odom(Odometry(0.9, Pose2(1.4, 0.0, 0.0)))
         on_scan(_scan(1.0))  # the first view is 1.5 m behind: a keyframe is due at t = 1
-        await asyncio.sleep(0.02)
+        await asyncio.sleep(0.01)
+        on_scan(_scan(1.1))  # arrives while the step waits: it is the next step's
+        await asyncio.sleep(0.01)
         on_odom(Odometry(1.0, Pose2(1.5, 0.0, 0.0)))
-        steps = len(service.step_ms)
         for _ in range(50):
             await asyncio.sleep(0.01)
             if len(service.step_ms) > steps:
                 break
         keyframes = len(service.explorer.map)
+        on_odom(Odometry(1.1, Pose2(1.6, 0.0, 0.0)))
+        for _ in range(50):
+            await asyncio.sleep(0.01)
+            if len(service.step_ms) > steps + 1:
+                break
+        steps = len(service.step_ms) - steps
+        assert service.health.state is MissionState.EXPLORING, service.health.reason
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
-        return service, keyframes
+        return service, keyframes, steps
 
-    service, keyframes = asyncio.run(scenario())
+    service, keyframes, steps = asyncio.run(scenario())
     assert keyframes == 2
     assert service.explorer.map.keyframes[1].odom_pose == Pose2(1.5, 0.0, 0.0)
+    assert steps == 2  # the scan that came during the wait was stepped too, and nothing failed
     assert service.health.scans_ahead_of_odometry == 0
 
 
