@@ -239,9 +239,9 @@ class Service:
         """Give the odometry a moment (``scan_odometry_wait_s``) to reach a scan's stamp, unless
         the scan is further ahead than the explorer would wait for (another clock)."""
         ahead_limit_s = self.explorer.params.scan_odometry_wait_s
-        end = time.monotonic() + self.settings.scan_odometry_wait_s
+        end = self._clock() + self.settings.scan_odometry_wait_s
         while (odom := self._odom) is not None and 1e-6 < stamp_s - odom.stamp_s <= ahead_limit_s:
-            if time.monotonic() >= end:
+            if self._clock() >= end:
                 self.health.scans_ahead_of_odometry += 1
                 return
             await asyncio.sleep(0.002)

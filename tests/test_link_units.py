@@ -173,7 +173,9 @@ def test_service_steps_a_scan_with_the_odometry_of_its_moment_even_when_that_com
 
     async def scenario() -> tuple[Service, int, int]:
         fake = FakeVehicle()
-        service = Service(ServiceSettings(input_timeout_s=1.0, startup_timeout_s=2.0), [fake], fake)
+        # The wait ends when the odometry comes; its bound only has to outlast a loaded machine.
+        settings = ServiceSettings(input_timeout_s=1.0, startup_timeout_s=2.0, scan_odometry_wait_s=2.0)
+        service = Service(settings, [fake], fake)
         task = asyncio.create_task(service.run())
         await asyncio.sleep(0)
         on_odom, on_scan = fake.handlers

@@ -161,8 +161,8 @@ def _insert_occlusions(
     frontier: NDArray[np.bool_],
     threshold_m: float,
     spacing_m: float,
-    grazing_max_gap_m: float = 0.0,
-    grazing_tol_m: float = 0.0,
+    grazing_max_gap_m: float,
+    grazing_tol_m: float,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """Insert frontier vertices at each range jump (thesis eq. 2.4).
 
