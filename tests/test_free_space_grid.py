@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import shapely
 
-from companion.core.free_space_grid import FreeSpaceGrid
+from companion.core.free_space_grid import FreeSpaceGrid, GridParams
 
 CLEARANCE_M = 0.4
 
@@ -82,3 +82,35 @@ def test_a_goal_in_unknown_space_is_not_reachable():
     reach = FreeSpaceGrid.build(free, walls, CLEARANCE_M).reach_from(np.array([1.0, 1.0]))
     assert reach is not None
     assert reach.path_to(np.array([2.0, 5.0])) is None  # beside the room, never seen
+
+
+def test_views_rasterised_one_by_one_give_the_cells_of_their_union():
+    """The grid of a neighbourhood is built from its views without their union: the same free
+    cells, but for centres within a millimetre of an edge."""
+    rng = np.random.default_rng(3)
+    views = []
+    for _ in range(12):
+        x, y, yaw = rng.uniform(0, 6), rng.uniform(0, 4), rng.uniform(-np.pi, np.pi)
+        angles = yaw + np.linspace(-np.pi / 4, np.pi / 4, 24)
+        ranges = rng.uniform(2.0, 5.0, angles.size)
+        fan = np.column_stack((x + ranges * np.cos(angles), y + ranges * np.sin(angles)))
+        views.append(shapely.Polygon(np.vstack(([x, y], fan))))
+    views_arr = np.array(views, dtype=object)
+    walls = np.zeros((0, 2, 2))
+    one_by_one = FreeSpaceGrid.build(views_arr, walls, CLEARANCE_M)
+    of_union = FreeSpaceGrid.build(shapely.union_all(views_arr, grid_size=1e-3), walls, CLEARANCE_M)
+    assert one_by_one.origin_xy == of_union.origin_xy
+    assert one_by_one.free.shape == of_union.free.shape
+    assert np.count_nonzero(one_by_one.free != of_union.free) <= 0.002 * one_by_one.free.size
+
+
+def test_a_sliver_between_two_views_is_no_wall():
+    """Two views whose edges lie 0.2 mm apart, a column of cell centres in the gap: their union
+    is one piece, and so is the grid (one blocked column, eroded, would close the way)."""
+    cell = GridParams().cell_m
+    x0 = -(CLEARANCE_M + 2 * cell)  # the grid's first cell centre, for views starting at x = 0
+    gap_x = x0 + 25 * cell
+    views = np.array([shapely.box(0, 0, gap_x - 1e-4, 3), shapely.box(gap_x + 1e-4, 0, 6, 3)], dtype=object)
+    grid = FreeSpaceGrid.build(views, np.zeros((0, 2, 2)), CLEARANCE_M)
+    assert grid.origin_xy[0] == pytest.approx(x0)
+    assert grid.reach_from(np.array([1.5, 1.5])).path_to(np.array([4.5, 1.5])) is not None

@@ -148,3 +148,35 @@ def test_a_route_leg_grazing_a_wall_goes_round_through_the_newest_scan():
     closed = shapely.box(-0.1, -0.9, 0.5, 0.45)
     planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 101.0, live_obstacles_xy=across, live_view=lambda: closed)
     assert planner._sidestep(here, wp, required) is None
+
+
+def test_the_last_leg_of_a_path_through_free_space_is_judged_like_its_other_legs():
+    """A goal has a path through the free-space grid because its straight line failed the strict
+    test (the whole margin clear); that path's last leg is flown while the newest scan keeps it
+    clear of the body radius and leg margin. Asked the strict test again, the last leg dropped
+    the goal the step after it was taken (a 0.9 m door's frontiers, one after another, until
+    they were set aside). A leg the scan sees blocked still drops it."""
+    from companion.core.planner import _Candidate
+
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    open_idx = targetable_indices(kf, 0.3)
+    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    goal_xy = np.array([3.0, 0.0])
+    vehicle = Pose2(0.0, 0.0, 0.0)
+    for jamb_y, kept in ((0.35, True), (0.2, False)):
+        planner = FrontierPlanner()
+        jamb = np.array([[1.5, jamb_y]])
+        candidate = _Candidate(key, goal_xy, 0.0, 0.0, path=goal_xy[None, :].copy())
+        planner._commit(m, kf.keyframe_id, candidate, np.zeros(2), 100.0)
+        view = m.view(kf.keyframe_id)
+        required = planner.params.clearance_m
+        planner.plan(m, kf.keyframe_id, vehicle, 100.1, live_obstacles_xy=jamb)  # sets the live returns
+        assert not planner._accessible(view, np.zeros(2), goal_xy, required)  # the strict test fails
+        planner._commit(m, kf.keyframe_id, candidate, np.zeros(2), 100.1)
+        decision = planner.plan(m, kf.keyframe_id, vehicle, 100.2, live_obstacles_xy=jamb)
+        if kept:
+            assert planner.goal is not None and planner.goal.key == key and decision.goal == key
+            assert (decision.target.x_m, decision.target.y_m) == (3.0, 0.0)
+        else:
+            assert decision.goal != key and key in planner._cooling

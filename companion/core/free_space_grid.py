@@ -81,24 +81,42 @@ class FreeSpaceGrid:
 
     @staticmethod
     def build(
-        free_space: shapely.Geometry,
+        free_space: shapely.Geometry | NDArray[np.object_],
         obstacle_segments: FloatArray,
         clearance_m: float,
         params: GridParams | None = None,
     ) -> FreeSpaceGrid:
-        """Rasterise ``free_space`` (a polygon, in some frame) with the obstacle segments (M, 2, 2)
-        blocked, then erode by ``clearance_m`` (less half a cell, so a door exactly twice the
-        clearance plus a cell wide stays open)."""
+        """Rasterise ``free_space`` (a polygon, or an array of polygons whose union it is, in some
+        frame) with the obstacle segments (M, 2, 2) blocked, then erode by ``clearance_m`` (less
+        half a cell, so a door exactly twice the clearance plus a cell wide stays open).
+        Polygons are rasterised one by one, each over its own bounding box: the same cells as
+        their union gives, without building it (a union of 50 views takes 15-20 ms, this 3-4)."""
         p = params or GridParams()
         cell = p.cell_m
-        minx, miny, maxx, maxy = free_space.bounds if not free_space.is_empty else (0.0, 0.0, 0.0, 0.0)
+        shapes = np.atleast_1d(np.asarray(free_space, dtype=object))
+        shapes = shapes[~shapely.is_empty(shapes)] if shapes.size else shapes
+        # Bounds on the millimetre grid the union snaps to: the same cells as a grid of the union.
+        minx, miny, maxx, maxy = np.round(shapely.total_bounds(shapes), 3) if shapes.size else (0.0, 0.0, 0.0, 0.0)
         pad = clearance_m + 2 * cell
         x0, y0 = minx - pad, miny - pad
         nx = max(1, math.ceil((maxx + pad - x0) / cell))
         ny = max(1, math.ceil((maxy + pad - y0) / cell))
         empty = np.zeros((ny, nx), dtype=bool)
         grid = FreeSpaceGrid((x0, y0), cell, clearance_m, empty, empty, p, empty.astype(np.int8))
-        blocked = ~grid._inside(free_space, 0, ny, 0, nx)
+        inside = np.zeros((ny, nx), dtype=bool)
+        for shape, bounds in zip(shapes, shapely.bounds(shapes), strict=True):
+            i0, i1, j0, j1 = grid._window(bounds)
+            if i0 < i1 and j0 < j1:
+                window = inside[i0:i1, j0:j1]
+                window |= grid._inside(shape, i0, i1, j0, j1, skip=window)
+        # A cell whose centre falls in a sliver between two views' near-coincident edges is no
+        # unknown space: open it when the cells on both sides of it (left and right, or above and
+        # below) are inside (the union's snap rounding closed such slivers; a line of blocked
+        # cells, eroded, closes a door).
+        sliver = np.zeros_like(inside)
+        sliver[:, 1:-1] |= inside[:, :-2] & inside[:, 2:]
+        sliver[1:-1, :] |= inside[:-2, :] & inside[2:, :]
+        blocked = ~(inside | sliver)
         grid._mark(blocked, _sample_segments(obstacle_segments, cell / 2.0))
         return grid._eroded(blocked)
 
@@ -116,12 +134,7 @@ class FreeSpaceGrid:
         are blocked."""
         if live_view is None or live_view.is_empty:
             return self.with_blocked_points(returns_xy)
-        minx, miny, maxx, maxy = live_view.bounds
-        ny, nx = self.blocked.shape
-        j0 = max(0, int((minx - self.origin_xy[0]) / self.cell_m))
-        j1 = min(nx, int((maxx - self.origin_xy[0]) / self.cell_m) + 2)
-        i0 = max(0, int((miny - self.origin_xy[1]) / self.cell_m))
-        i1 = min(ny, int((maxy - self.origin_xy[1]) / self.cell_m) + 2)
+        i0, i1, j0, j1 = self._window(live_view.bounds)
         blocked = self.blocked.copy()
         if i0 < i1 and j0 < j1:
             blocked[i0:i1, j0:j1] &= ~self._inside(live_view, i0, i1, j0, j1)
@@ -168,12 +181,34 @@ class FreeSpaceGrid:
         inside: NDArray[np.bool_] = (ij[:, 0] >= 0) & (ij[:, 0] < ny) & (ij[:, 1] >= 0) & (ij[:, 1] < nx)
         return inside
 
-    def _inside(self, shape: shapely.Geometry, i0: int, i1: int, j0: int, j1: int) -> NDArray[np.bool_]:
-        """Which cells of rows i0:i1, columns j0:j1 have their centre inside ``shape``."""
+    def _window(self, bounds: tuple[float, float, float, float]) -> tuple[int, int, int, int]:
+        """Rows i0:i1 and columns j0:j1 (clipped to the grid) whose cell centres can lie inside
+        a shape with these bounds (minx, miny, maxx, maxy)."""
+        minx, miny, maxx, maxy = bounds
+        ny, nx = self.blocked.shape
+        j0 = max(0, int((minx - self.origin_xy[0]) / self.cell_m))
+        j1 = min(nx, int((maxx - self.origin_xy[0]) / self.cell_m) + 2)
+        i0 = max(0, int((miny - self.origin_xy[1]) / self.cell_m))
+        i1 = min(ny, int((maxy - self.origin_xy[1]) / self.cell_m) + 2)
+        return i0, i1, j0, j1
+
+    def _inside(
+        self,
+        shape: shapely.Geometry,
+        i0: int,
+        i1: int,
+        j0: int,
+        j1: int,
+        skip: NDArray[np.bool_] | None = None,
+    ) -> NDArray[np.bool_]:
+        """Which cells of rows i0:i1, columns j0:j1 have their centre inside ``shape`` (cells set
+        in ``skip`` are not tested and read False)."""
         gx, gy = np.meshgrid(
             self.origin_xy[0] + self.cell_m * np.arange(j0, j1), self.origin_xy[1] + self.cell_m * np.arange(i0, i1)
         )
-        inside: NDArray[np.bool_] = shapely.contains_xy(shape, gx.ravel(), gy.ravel()).reshape(gx.shape)
+        inside = np.zeros(gx.shape, dtype=bool)
+        test = np.ones(gx.shape, dtype=bool) if skip is None else ~skip
+        inside[test] = shapely.contains_xy(shape, gx[test], gy[test])
         return inside
 
     def _mark(self, blocked: NDArray[np.bool_], points_xy: FloatArray) -> None:

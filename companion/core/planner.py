@@ -278,12 +278,15 @@ class FrontierPlanner:
             pts = pose.apply(goal.path)
             pts = self._past_corners(pts, here)
             goal.path = goal.path[-pts.shape[0] :]
-            if pts.shape[0] > 1:
-                if self._leg_blocked(vehicle, here, pts[0], required):
-                    self._drop(goal.key, stamp_s)
-                    return None
-                return self._fly(vehicle, pts[0], look, Mode.EXPLORING, goal.key)
-            goal.path = None
+            # Every leg of a path through the free-space grid, the last one too, was planned clear
+            # of the map's walls and is judged by the newest scan as it is flown. (The goal has a
+            # path because its straight line failed the stricter test: asked again of the last
+            # leg, that test dropped the goal the step after it was taken, a door's frontiers
+            # one after another until they were set aside.)
+            if self._leg_blocked(vehicle, here, pts[0], required):
+                self._drop(goal.key, stamp_s)
+                return None
+            return self._fly(vehicle, pts[0], look, Mode.EXPLORING, goal.key)
         if goal.arrived_s is not None:
             # Settle where it arrived: a new keyframe may re-express the goal a little elsewhere
             # (another chain of the graph), and chasing that would creep towards walls.
@@ -528,7 +531,7 @@ class FrontierPlanner:
     def _reach(self, view: LocalView, here: FloatArray) -> Reach | None:
         """The wavefront through the view's free space (with the newest returns) from ``here``."""
         if self._grid is None or self._grid[0] is not view:
-            grid = FreeSpaceGrid.build(view.grown, view.walls_xy, self.params.clearance_m, self.params.grid)
+            grid = FreeSpaceGrid.build(view.shapes, view.walls_xy, self.params.clearance_m, self.params.grid)
             self._grid = (view, grid)
         live_view = None if self._live_view is None else self._live_view()
         grid = self._grid[1].with_live_scan(self._live, live_view)
