@@ -25,6 +25,8 @@ def test_shipped_maps_load(shipped_maps):
         "hall",
         "rotunda",
         "longhall",
+        "apartment",
+        "gallery",
     }
     for path in paths:
         w = load_world(path)
