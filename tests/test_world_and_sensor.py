@@ -27,6 +27,8 @@ def test_shipped_maps_load(shipped_maps):
         "longhall",
         "apartment",
         "gallery",
+        "cave",
+        "offices2",
     }
     for path in paths:
         w = load_world(path)
