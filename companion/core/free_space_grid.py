@@ -90,7 +90,7 @@ class FreeSpaceGrid:
         frame) with the obstacle segments (M, 2, 2) blocked, then erode by ``clearance_m`` (less
         half a cell, so a door exactly twice the clearance plus a cell wide stays open).
         Polygons are rasterised one by one, each over its own bounding box: the same cells as
-        their union gives, without building it (a union of 50 views takes 15-20 ms, this 3-4)."""
+        their union gives, without building it (a union of 50 views takes 15-20 ms, this about 3)."""
         p = params or GridParams()
         cell = p.cell_m
         shapes = np.atleast_1d(np.asarray(free_space, dtype=object))
