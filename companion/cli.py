@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -23,6 +24,8 @@ def _positive(kind: type[float] | type[int]):  # type: ignore[no-untyped-def]
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
         if value < 0:
             raise argparse.ArgumentTypeError(f"must not be negative, got {text}")
         return value
@@ -49,6 +52,13 @@ def _parser() -> argparse.ArgumentParser:
         default=1800.0,
         help="simulated seconds before timing out",
     )
+    sim.add_argument(
+        "--input-latency",
+        type=_positive(float),
+        default=0.0,
+        metavar="S",
+        help="hand the planner each scan and odometry sample S seconds late, as a link does (default 0)",
+    )
     sim.add_argument("--report", type=Path, help="write the JSON report here")
     sim.add_argument("--plots", type=Path, help="write PNG figures into this folder")
     sim.add_argument("--no-baseline", action="store_true", help="with --plots: skip the grid baseline run")
@@ -73,8 +83,11 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _explore(world: World, args: argparse.Namespace, planner: str, console: Console) -> RunTrace:
+    latency = args.input_latency if planner == args.planner else 0.0  # the baseline gets its frames at once
     if args.quiet:
-        return run_exploration(world, planner, args.seed, args.noise_scale, args.max_time, map_label=str(args.map))
+        return run_exploration(
+            world, planner, args.seed, args.noise_scale, args.max_time, map_label=str(args.map), input_latency_s=latency
+        )
     with Progress(
         TextColumn(f"[bold]{planner}[/] {world.name}"),
         BarColumn(),
@@ -95,6 +108,7 @@ def _explore(world: World, args: argparse.Namespace, planner: str, console: Cons
             args.max_time,
             progress=progress,
             map_label=str(args.map),
+            input_latency_s=latency,
         )
 
 

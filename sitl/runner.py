@@ -7,7 +7,9 @@ grid planner is the perfect-pose baseline.
 
 from __future__ import annotations
 
+import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -104,6 +106,7 @@ class RunTrace:
     keyframe_true_poses: dict[int, Pose2] = field(default_factory=dict)
     coverage: CoverageGrid | None = None
     policy: Policy | None = None
+    input_lags_s: list[float] = field(default_factory=list)  # age of each frame when the planner got it
 
 
 Progress = Callable[[float, float], None]  # (sim time s, coverage)
@@ -119,10 +122,17 @@ def run_exploration(
     explorer_params: ExplorerParams | None = None,
     progress: Progress | None = None,
     map_label: str | None = None,
+    input_latency_s: float = 0.0,
 ) -> RunTrace:
-    """Explore ``world`` until the planner ends, the vehicle crashes, or ``max_time_s`` passes."""
+    """Explore ``world`` until the planner ends, the vehicle crashes, or ``max_time_s`` passes.
+
+    ``input_latency_s`` hands the planner each frame (scan, odometry, loop closures) that much
+    later than it was taken, as a link to a real autopilot and camera does; its setpoints act at
+    once. Until the first frame arrives the vehicle holds where it started."""
     if planner not in PLANNERS:
         raise ValueError(f"planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
+    if not (math.isfinite(input_latency_s) and input_latency_s >= 0.0):
+        raise ValueError(f"input_latency_s must be finite and >= 0, got {input_latency_s!r}")
     base = sim_params or SimParams()
     scale = 0.0 if planner == "grid" else noise_scale  # the baseline has perfect poses
     d = base.drift
@@ -138,6 +148,9 @@ def run_exploration(
     coverage = CoverageGrid(world)
     trace = RunTrace(report={}, coverage=coverage, policy=policy)
     frame = sim.frame()
+    pending: deque[SensorFrame] = deque()  # frames taken, not yet handed to the planner
+    start = frame.odometry.pose
+    setpoint: Setpoint | None = Setpoint(start.x_m, start.y_m, start.yaw_rad)
     termination = "timeout"
     time_to_99: float | None = None
     next_sample = 0.0
@@ -153,11 +166,18 @@ def run_exploration(
             next_sample += 1.0
             if progress is not None:
                 progress(frame.stamp_s, cov)
-        setpoint = policy.step(frame)
-        if isinstance(policy, PolygonPolicy):
-            for k, kf in policy.explorer.map.keyframes.items():
-                if k not in trace.keyframe_true_poses and kf.stamp_s == frame.stamp_s:
-                    trace.keyframe_true_poses[k] = frame.true_pose
+        pending.append(frame)
+        due = frame.stamp_s - input_latency_s + 1e-9
+        while pending and pending[0].stamp_s <= due:  # every frame, in order, once it is due
+            late = pending.popleft()
+            trace.input_lags_s.append(frame.stamp_s - late.stamp_s)
+            setpoint = policy.step(late)
+            if isinstance(policy, PolygonPolicy):
+                for k, kf in policy.explorer.map.keyframes.items():
+                    if k not in trace.keyframe_true_poses and kf.stamp_s == late.stamp_s:
+                        trace.keyframe_true_poses[k] = late.true_pose
+            if setpoint is None:
+                break
         if setpoint is None:
             termination = "complete"
             if policy.summary()["frontiers_set_aside"]:
@@ -184,6 +204,7 @@ def run_exploration(
         "time_to_99_s": None if time_to_99 is None else round(time_to_99, 3),
         "path_length_m": round(sim.path_length_m, 3),
         "collisions": sim.collisions,
+        "input_latency_s": input_latency_s,
         "termination": termination,
         **policy.summary(),
         "step_ms": {

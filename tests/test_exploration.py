@@ -34,6 +34,24 @@ def test_polygon_explorer_covers_a_small_room_with_drift(small_room, seed):
     assert r["keyframes"] > 3
 
 
+def test_an_input_latency_hands_the_planner_every_frame_that_much_later(small_room):
+    """``input_latency_s`` (``companion sim --input-latency``) delays what the planner gets, as a
+    link does: every frame, once, in order, 0.2 s old; the vehicle holds at its start until the
+    first arrives. Without it, every frame arrives at once."""
+    world = load_world(small_room)
+    late = run_exploration(world, "polygon", seed=1, noise_scale=1.0, max_time_s=40, input_latency_s=0.2)
+    assert late.report["input_latency_s"] == 0.2
+    assert late.input_lags_s and np.allclose(late.input_lags_s, 0.2)
+    # One planner step per frame taken up to 0.2 s before the end: none lost, none twice.
+    frames = len(late.true_path)
+    assert late.report["step_ms"]["count"] == len(late.input_lags_s) == frames - 2
+    start = late.true_path[0]
+    assert math.hypot(late.true_path[2].x_m - start.x_m, late.true_path[2].y_m - start.y_m) < 0.01
+    at_once = run_exploration(world, "polygon", seed=1, noise_scale=1.0, max_time_s=40)
+    assert np.all(np.asarray(at_once.input_lags_s) == 0.0)
+    assert at_once.report["path_length_m"] != late.report["path_length_m"]
+
+
 def test_polygon_explorer_finds_the_room_behind_the_door(two_rooms):
     trace = run_exploration(load_world(two_rooms), "polygon", seed=4, noise_scale=1.0, max_time_s=900)
     assert trace.report["collisions"] == 0
