@@ -82,11 +82,18 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _explore(world: World, args: argparse.Namespace, planner: str, console: Console) -> RunTrace:
-    latency = args.input_latency if planner == args.planner else 0.0  # the baseline gets its frames at once
+def _explore(
+    world: World, args: argparse.Namespace, planner: str, console: Console, latency_s: float = 0.0
+) -> RunTrace:
     if args.quiet:
         return run_exploration(
-            world, planner, args.seed, args.noise_scale, args.max_time, map_label=str(args.map), input_latency_s=latency
+            world,
+            planner,
+            args.seed,
+            args.noise_scale,
+            args.max_time,
+            map_label=str(args.map),
+            input_latency_s=latency_s,
         )
     with Progress(
         TextColumn(f"[bold]{planner}[/] {world.name}"),
@@ -108,13 +115,13 @@ def _explore(world: World, args: argparse.Namespace, planner: str, console: Cons
             args.max_time,
             progress=progress,
             map_label=str(args.map),
-            input_latency_s=latency,
+            input_latency_s=latency_s,
         )
 
 
 def _sim(args: argparse.Namespace, console: Console) -> int:
     world = load_world(args.map)
-    trace = _explore(world, args, args.planner, console)
+    trace = _explore(world, args, args.planner, console, args.input_latency)  # the baseline: no latency
     r = trace.report
     console.print(
         f"{r['planner']} on {world.name}: termination [bold]{r['termination']}[/], coverage {r['coverage']:.3f}, "

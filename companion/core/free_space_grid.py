@@ -104,14 +104,10 @@ class FreeSpaceGrid:
         empty = np.zeros((ny, nx), dtype=bool)
         grid = FreeSpaceGrid((x0, y0), cell, clearance_m, empty, empty, p, empty.astype(np.int8))
         inside = np.zeros((ny, nx), dtype=bool)
-        xs, ys = x0 + cell * np.arange(nx), y0 + cell * np.arange(ny)
         for shape, bounds in zip(shapes, shapely.bounds(shapes), strict=True):
             i0, i1, j0, j1 = grid._window(bounds)
             window = inside[i0:i1, j0:j1]
-            rows, cols = np.nonzero(~window)  # cells another view has not already set
-            if rows.size:
-                hit = shapely.contains_xy(shape, xs[j0 + cols], ys[i0 + rows])
-                window[rows[hit], cols[hit]] = True
+            window |= grid._inside(shape, i0, i1, j0, j1, skip=window)  # cells no earlier view set
         # A cell whose centre falls in a sliver between two views' near-coincident edges is no
         # unknown space: open it when the cells on both sides of it (left and right, or above and
         # below) are inside (the union's snap rounding closed such slivers; a line of blocked
@@ -195,13 +191,26 @@ class FreeSpaceGrid:
         i1 = min(ny, int((maxy - self.origin_xy[1]) / self.cell_m) + 2)
         return i0, i1, j0, j1
 
-    def _inside(self, shape: shapely.Geometry, i0: int, i1: int, j0: int, j1: int) -> NDArray[np.bool_]:
-        """Which cells of rows i0:i1, columns j0:j1 have their centre inside ``shape``."""
-        gx, gy = np.meshgrid(
-            self.origin_xy[0] + self.cell_m * np.arange(j0, j1), self.origin_xy[1] + self.cell_m * np.arange(i0, i1)
-        )
-        inside: NDArray[np.bool_] = shapely.contains_xy(shape, gx.ravel(), gy.ravel()).reshape(gx.shape)
-        return inside
+    def _inside(
+        self,
+        shape: shapely.Geometry,
+        i0: int,
+        i1: int,
+        j0: int,
+        j1: int,
+        skip: NDArray[np.bool_] | None = None,
+    ) -> NDArray[np.bool_]:
+        """Which cells of rows i0:i1, columns j0:j1 have their centre inside ``shape``; cells set
+        in ``skip`` are not tested (read False). Cells are indexed directly, not meshed: this runs
+        once per view of a neighbourhood."""
+        out = np.zeros((i1 - i0, j1 - j0), dtype=bool)
+        rows, cols = np.nonzero(~skip) if skip is not None else np.nonzero(~out)
+        if rows.size:
+            x = self.origin_xy[0] + self.cell_m * (j0 + cols)
+            y = self.origin_xy[1] + self.cell_m * (i0 + rows)
+            hit = shapely.contains_xy(shape, x, y)
+            out[rows[hit], cols[hit]] = True
+        return out
 
     def _mark(self, blocked: NDArray[np.bool_], points_xy: FloatArray) -> None:
         """Block (in place) the cells the points fall in."""

@@ -337,11 +337,15 @@ class LocalMap:
             return
         p = self.params
         poses = list(view.poses.values())
-        near = apply_grouped(poses, [kf.beyond_points(i, p.closing_offset_m) for kf, i in zip(kfs, idx, strict=True)])
+
+        def beyond(offset_m: float) -> FloatArray:
+            """Every open vertex's point ``offset_m`` outside it, in the view's frame."""
+            return apply_grouped(poses, [kf.beyond_points(i, offset_m) for kf, i in zip(kfs, idx, strict=True)])
+
+        near = beyond(p.closing_offset_m)
         seen = view.holds(near)
         if p.closing_depth_m > p.closing_offset_m and seen.any():
-            deep_at = p.closing_depth_m
-            deep = apply_grouped(poses, [kf.beyond_points(i, deep_at) for kf, i in zip(kfs, idx, strict=True)])
+            deep = beyond(p.closing_depth_m)
             check = np.flatnonzero(seen)
             deep_seen = view.holds(deep[check])
             shallow = check[~deep_seen]
