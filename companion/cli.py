@@ -7,6 +7,7 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from rich.console import Console
@@ -85,16 +86,20 @@ def _parser() -> argparse.ArgumentParser:
 def _explore(
     world: World, args: argparse.Namespace, planner: str, console: Console, latency_s: float = 0.0
 ) -> RunTrace:
-    if args.quiet:
+    def explore(progress: Callable[[float, float], None] | None = None) -> RunTrace:
         return run_exploration(
             world,
             planner,
             args.seed,
             args.noise_scale,
             args.max_time,
+            progress=progress,
             map_label=str(args.map),
             input_latency_s=latency_s,
         )
+
+    if args.quiet:
+        return explore()
     with Progress(
         TextColumn(f"[bold]{planner}[/] {world.name}"),
         BarColumn(),
@@ -107,16 +112,7 @@ def _explore(
         def progress(sim_s: float, coverage: float) -> None:
             bar.update(task, completed=coverage, coverage=coverage, sim_s=sim_s)
 
-        return run_exploration(
-            world,
-            planner,
-            args.seed,
-            args.noise_scale,
-            args.max_time,
-            progress=progress,
-            map_label=str(args.map),
-            input_latency_s=latency_s,
-        )
+        return explore(progress)
 
 
 def _sim(args: argparse.Namespace, console: Console) -> int:
