@@ -111,6 +111,36 @@ def test_a_long_chain_needs_the_other_view_to_reach_deeper_beyond_the_frontier()
     assert np.any(m.keyframes[a].kinds == VertexKind.FRONTIER)
 
 
+def along_wall_scan(offset_m: float = 0.5) -> DepthScan:
+    """Looking along a wall ``offset_m`` to the right: returns where it lies within range."""
+    with np.errstate(divide="ignore"):
+        ranges = np.where(BEARINGS < 0, offset_m / np.sin(-np.minimum(BEARINGS, -1e-9)), np.inf)
+    return DepthScan(0.0, BEARINGS, np.minimum(ranges, 5.0), 5.0)
+
+
+def test_frontiers_along_a_wall_a_view_beyond_the_neighbourhood_saw_are_closed_through_the_graph():
+    """A looks along a wall; its view ends in frontier vertices right by the wall where the
+    wall leaves its range. C, 3 m further along (reached only through far-away B), saw that
+    stretch of wall and the room beside it: those vertices are closed, though the space along
+    their outward normals lies inside the wall, which no view can reach into."""
+    m = LocalMap()
+    a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(along_wall_scan()))
+    b_pose = Pose2(0.0, -20.0, -math.pi / 2)
+    b = m.add_keyframe(1.0, b_pose, scan_to_polygon(open_scan(1.0)), (a.keyframe_id, b_pose))
+    m.add_keyframe(
+        2.0,
+        Pose2(3.0, 0.0, 0.0),
+        scan_to_polygon(along_wall_scan()),
+        (b.keyframe_id, b_pose.between(Pose2(3.0, 0.0, 0.0))),
+    )
+    assert m.neighbourhood(a.keyframe_id) == {}
+    v = a.polygon.vertices_xy
+    by_wall = (a.kinds == VertexKind.FRONTIER) & (v[:, 1] < -0.3) & (v[:, 0] > 4.0)  # 1 m into C's view
+    assert np.count_nonzero(by_wall) >= 3
+    m.close_through_graph(a.keyframe_id)
+    assert np.all(a.kinds[by_wall] == VertexKind.FREE)
+
+
 def test_closing_through_the_graph_since_a_keyframe_tests_only_the_views_from_it_on():
     """The planner re-checks a keyframe with only the views added since its last check (no loop
     closure in between): an older view is not tested again, a newer one is."""

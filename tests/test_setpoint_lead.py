@@ -76,3 +76,17 @@ def test_at_speed_a_line_passing_close_by_a_corner_counts_as_blocked():
     assert lead_of(hovering, pose) == pytest.approx(1.5)
     reach = 0.3 + 0.15 * 1.5
     assert lead_of(fast, pose) == pytest.approx(1.2 - math.sqrt(reach**2 - 0.31**2) - 0.1)
+
+
+def test_a_remembered_return_is_given_a_wider_berth_than_one_in_view():
+    """A return out of view now was sampled at the ray spacing and has drifted with odometry
+    since: the line must pass it by the memory margin more (a jamb's corner beside the vehicle,
+    between two remembered samples, was touched at the plain margin)."""
+    params = LeadParams(
+        max_lead_m=1.5, contact_margin_m=0.05, stop_margin_m=0.1, speed_margin_s=0.0, memory_margin_m=0.05
+    )
+    pose, sp = Pose2(0.0, 0.0, 0.0), Setpoint(3.0, 0.0, 0.0)
+    beside = np.array([[1.0, 0.33]])  # the line passes 0.33 m off: clear of 0.30, not of 0.35
+    assert lead_of(limit_lead(sp, pose, (0.0, 0.0), beside, BODY_M, params), pose) == pytest.approx(1.5)
+    held = limit_lead(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, remembered_xy=beside)
+    assert lead_of(held, pose) < 1.0 - 0.1  # short of the point, by the stop margin at least

@@ -129,6 +129,10 @@ class RecentReturns:
             return np.zeros((0, 2))
         return np.vstack([pts for _, _, pts in self._scans])
 
+    def newest_count(self) -> int:
+        """How many of :meth:`points_xy` (the last ones) are the newest scan's."""
+        return int(self._scans[-1][2].shape[0]) if self._scans else 0
+
     def shift(self, correction: Pose2) -> None:
         """Re-express the points after an estimator reset (``new = correction ∘ old``)."""
         self._scans = deque((t, d, correction.apply(pts)) for t, d, pts in self._scans)
@@ -367,11 +371,16 @@ class Explorer:
         return (c * vx + s * vy, -s * vx + c * vy)
 
     def _within_lead(self, sp: Setpoint, pose: Pose2, velocity_in_frame: tuple[float, float]) -> Setpoint:
-        """The setpoint limited to the lead (see :mod:`setpoint_lead`), all in the odometry frame."""
+        """The setpoint limited to the lead (see :mod:`setpoint_lead`), all in the odometry frame:
+        the newest scan's returns, and the earlier ones remembered."""
         returns = self._obstacles_xy
+        newest = self._recent.newest_count()
         vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
         body_radius_m = self.params.planner.body_radius_m
-        return limit_lead(sp, pose, (float(vx), float(vy)), returns, body_radius_m, self.params.lead)
+        split = returns.shape[0] - newest
+        return limit_lead(
+            sp, pose, (float(vx), float(vy)), returns[split:], body_radius_m, self.params.lead, returns[:split]
+        )
 
     def _recent_obstacles(self, pose_at_scan: Pose2, newest: DepthScan) -> FloatArray:
         """The recent returns (odometry frame), less those the newest scan sees through (they

@@ -88,12 +88,23 @@ class FovPolygon:
 
     def obstacle_segments(self) -> FloatArray:
         """(M, 2, 2) array of obstacle edges (both ends observed obstacle returns)."""
+        return self._segments(self._obstacle_mask())
+
+    def open_segments(self) -> FloatArray:
+        """(M, 2, 2) array of the other edges: where the view's free space ends at space it did
+        not see (its range limit, an occlusion's shadow, its field of view's sides)."""
+        return self._segments(~self._obstacle_mask())
+
+    def _obstacle_mask(self) -> NDArray[np.bool_]:
         k = self.kinds
         nxt = np.roll(k, -1)
-        mask = (k == VertexKind.OBSTACLE) & (nxt == VertexKind.OBSTACLE)
+        mask: NDArray[np.bool_] = (k == VertexKind.OBSTACLE) & (nxt == VertexKind.OBSTACLE)
         if self.has_origin:
             mask[0] = False
             mask[-1] = False
+        return mask
+
+    def _segments(self, mask: NDArray[np.bool_]) -> FloatArray:
         idx = np.flatnonzero(mask)
         nxt_idx = (idx + 1) % self.size
         return np.stack((self.vertices_xy[idx], self.vertices_xy[nxt_idx]), axis=1)

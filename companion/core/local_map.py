@@ -31,8 +31,9 @@ class MapParams:
     closing_offset_m: float = 0.15  # how far beyond a frontier vertex another view must reach
     closing_depth_m: float = 0.4  # and how far (or to a wall) it must reach: a sliver does not close
     wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
-    # Closing against views outside the neighbourhood, reached along the pose graph: the view
-    # must reach farther beyond the vertex the longer the chain (drift accumulates along it).
+    # Closing against views outside the neighbourhood, reached along the pose graph: the vertex
+    # must lie deeper inside the other view the longer the chain (drift accumulates along it),
+    # at least as deep as the closing depth beyond the offset.
     chain_margin_per_hop_m: float = 0.05
     chain_max_margin_m: float = 1.0
     chain_max_hops: int = 400
@@ -54,6 +55,7 @@ class Keyframe:
     kinds: NDArray[np.int8] = field(init=False)
     radius_m: float = field(init=False)
     walls: FloatArray = field(init=False)  # the polygon's obstacle edges (M, 2, 2), computed once
+    open_edges: FloatArray = field(init=False)  # and its other edges, bordering unseen space
     corners_xy: FloatArray = field(init=False)  # the polygon shape's own coordinates (N, 2)
     version: int = field(init=False, default=0)  # bumped by every :meth:`close`
     # (version, min size, indices): the open frontier vertices worth a flight, see frontiers.py
@@ -64,6 +66,7 @@ class Keyframe:
         self.kinds = self.polygon.kinds.copy()
         self.radius_m = float(np.max(np.linalg.norm(self.polygon.vertices_xy, axis=1)))
         self.walls = self.polygon.obstacle_segments()
+        self.open_edges = self.polygon.open_segments()
         self.corners_xy = shapely.get_coordinates(self.polygon.shape)
 
     def open_frontier_indices(self) -> NDArray[np.intp]:
@@ -232,9 +235,16 @@ class LocalMap:
     def close_through_graph(self, keyframe_id: int, since_id: int = 0) -> int:
         """Eq. 2.15 for a keyframe's open frontiers against every view the pose graph reaches, not
         only its neighbourhood: a view on the far side of a block, joined to this one only by a
-        long chain, may have seen beyond them. The space beyond must lie that much deeper inside
-        the other view the more hops the chain has. Only views from ``since_id`` on are tested
-        (the caller knows the older ones were, along the same paths). Returns how many closed."""
+        long chain, may have seen beyond them. Only views from ``since_id`` on are tested (the
+        caller knows the older ones were, along the same paths). Returns how many closed.
+
+        A vertex closes when it, or the point just beyond it, lies inside another view at least
+        a depth away from that view's open edges (where its free space ends at space it did not
+        see); the depth grows with the chain's hops, for the drift along it. Its walls do not
+        count: a vertex by a wall the other view saw has nothing beyond it but that wall, and
+        asking for space deeper beyond such a vertex (as along its outward normal) asked for
+        space inside the wall, so the frontiers a view leaves along a wall it sees at a grazing
+        angle stayed open and were flown to one by one after the room was seen."""
         kf = self.keyframes[keyframe_id]
         idx = kf.open_frontier_indices()
         if idx.size == 0:
@@ -249,17 +259,31 @@ class LocalMap:
         if not test.any():
             return 0
         ids, hops, poses = ids[test], hops[test], poses[test]
-        # Every open vertex against every view at once: the points just beyond each vertex (by
-        # the view's chain margin), moved into each view's frame, tested against its polygon.
-        offset = p.closing_offset_m + np.minimum(p.chain_max_margin_m, p.chain_margin_per_hop_m * hops)
-        v, n = kf.polygon.vertices_xy[idx], kf.polygon.outward_xy[idx]
-        beyond = v[None, :, :] + offset[:, None, None] * n[None, :, :]  # (views, vertices, 2)
-        d = beyond - poses[:, None, :2]
-        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-        x, y = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]
+        depth = np.maximum(
+            p.closing_depth_m - p.closing_offset_m, np.minimum(p.chain_max_margin_m, p.chain_margin_per_hop_m * hops)
+        )
+        # Every open vertex and its point just beyond, moved into every view's frame at once.
+        v = kf.polygon.vertices_xy[idx]
+        pts = np.stack((v, v + p.closing_offset_m * kf.polygon.outward_xy[idx]))  # (2, vertices, 2)
+        d = pts[None] - poses[:, None, None, :2]
+        c, s = np.cos(poses[:, 2])[:, None, None], np.sin(poses[:, 2])[:, None, None]
+        x, y = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]  # (views, 2, vertices)
         shapes = np.array([self.keyframes[int(k)].polygon.shape for k in ids], dtype=object)
-        still_open = ~shapely.contains_xy(shapes[:, None], x, y).any(axis=0)
-        closed = idx[~still_open]
+        inside = shapely.contains_xy(shapes[:, None, None], x, y)
+        seen = np.zeros(idx.size, dtype=bool)
+        for j in np.flatnonzero(inside.any(axis=(1, 2))):  # then the depth, view by view
+            ask = inside[j] & ~seen
+            if not ask.any():
+                continue
+            deep = np.ones(np.count_nonzero(ask), dtype=bool)
+            edges = self.keyframes[int(ids[j])].open_edges
+            if edges.shape[0]:
+                q = np.column_stack((x[j][ask], y[j][ask]))
+                deep = point_segment_distances(q, edges).min(axis=1) >= depth[j]
+            hit = np.zeros(ask.shape, dtype=bool)
+            hit[ask] = deep
+            seen |= hit.any(axis=0)
+        closed = idx[seen]
         kf.close(closed)
         return int(closed.size)
 

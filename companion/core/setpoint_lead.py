@@ -25,6 +25,12 @@ class LeadParams:
 
     max_lead_m: float = 1.5
     contact_margin_m: float = 0.05  # a return this close to the body (its radius) counts as touched
+    # Remembered returns (earlier scans', out of view now) count as touched this much farther
+    # out: they sample a surface at the ray spacing (7.5 cm at 3 m), so a jamb's corner lies
+    # between two of them, and odometry has moved them a few centimetres since. At the plain
+    # margin a vehicle sliding past a corner outside its field of view touched it (longhall
+    # seed 2). The newest scan's returns keep the plain margin: it is ahead, where speed is.
+    memory_margin_m: float = 0.05
     stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
     moving_mps: float = 0.1  # above this speed the motion's own direction is checked too
     # The contact radius grows by this many seconds of speed: at speed the vehicle does not hold
@@ -40,26 +46,31 @@ def limit_lead(
     returns_xy: FloatArray,
     body_radius_m: float,
     params: LeadParams,
+    remembered_xy: FloatArray | None = None,
 ) -> Setpoint:
     """The setpoint moved along its line from the vehicle to at most the allowed lead (yaw kept).
 
-    ``velocity_xy`` and ``returns_xy`` (the sensor's obstacle points) are in the setpoint's frame.
-    Already closer to a return than the body radius and contact margin (a tight door) the vehicle
-    may move along or away, only not closer still. Only returns count, never the map: a drifted
-    view's wall placed on the vehicle must not shrink the berth to nothing (office 2 flew into a
-    wall that way). The faster it moves, the wider a berth its line must give a return.
+    ``velocity_xy``, ``returns_xy`` (the newest scan's obstacle points) and ``remembered_xy``
+    (earlier scans') are in the setpoint's frame. Already closer to a return than the body
+    radius and contact margin (a tight door) the vehicle may move along or away, only not closer
+    still. Only returns count, never the map: a drifted view's wall placed on the vehicle must
+    not shrink the berth to nothing (office 2 flew into a wall that way). The faster it moves,
+    the wider a berth its line must give a return.
     """
     dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
     dist = math.hypot(dx, dy)
     lead = min(params.max_lead_m, dist)
-    if returns_xy.shape[0]:
-        rel = returns_xy - [pose.x_m, pose.y_m]
-        speed = math.hypot(*velocity_xy)
-        reach = body_radius_m + params.contact_margin_m + params.speed_margin_s * speed
-        contact = min(reach, 0.95 * float(np.min(np.hypot(rel[:, 0], rel[:, 1]))))
-        directions = [(dx, dy)]
-        if speed > params.moving_mps:
-            directions.append(velocity_xy)
+    speed = math.hypot(*velocity_xy)
+    reach = body_radius_m + params.contact_margin_m + params.speed_margin_s * speed
+    directions = [(dx, dy)]
+    if speed > params.moving_mps:
+        directions.append(velocity_xy)
+    remembered = np.zeros((0, 2)) if remembered_xy is None else remembered_xy
+    for points, radius in ((returns_xy, reach), (remembered, reach + params.memory_margin_m)):
+        if points.shape[0] == 0:
+            continue
+        rel = points - [pose.x_m, pose.y_m]
+        contact = min(radius, 0.95 * float(np.min(np.hypot(rel[:, 0], rel[:, 1]))))
         for direction in directions:
             lead = min(lead, max(0.0, free_travel_m(rel, direction, contact) - params.stop_margin_m))
     if lead >= dist:
