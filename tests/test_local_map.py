@@ -141,6 +141,32 @@ def test_frontiers_along_a_wall_a_view_beyond_the_neighbourhood_saw_are_closed_t
     assert np.all(a.kinds[by_wall] == VertexKind.FREE)
 
 
+def test_frontiers_on_a_wall_only_a_view_beyond_the_neighbourhood_saw_are_closed_through_the_graph():
+    """A's arc ends at 5 m, 5 cm past a wall that C (3 m east of A, reached only through
+    far-away B) saw across its whole view: those arc vertices lie outside C's free space, so
+    nothing along their normals can ever be seen, and only the wall C saw closes them."""
+    from companion.core.local_map import MapParams
+
+    wall_scan = DepthScan(0.0, BEARINGS, 1.95 / np.cos(BEARINGS), 5.0)  # a wall at x = 4.95 in A's frame
+    kinds = []
+    for snap_m in (0.0, 0.15):
+        m = LocalMap(MapParams(graph_wall_snap_m=snap_m))
+        a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+        b = add_pose(m, Pose2(0.0, -20.0, -math.pi / 2), a)
+        add_pose(m, Pose2(3.0, 0.0, 0.0), b, wall_scan)
+        assert m.neighbourhood(a[0]) == {}
+        kf_a = m.keyframes[a[0]]
+        v = kf_a.polygon.vertices_xy
+        on_wall = (kf_a.kinds == VertexKind.FRONTIER) & (v[:, 0] > 4.85) & (np.abs(v[:, 1]) < 1.0)
+        assert np.count_nonzero(on_wall) >= 3
+        m.close_through_graph(a[0])
+        kinds.append(kf_a.kinds[on_wall])
+        off_wall = (kf_a.kinds == VertexKind.FRONTIER) & (v[:, 0] < 4.6)  # 0.35 m or more from it
+        assert off_wall.any()
+    assert np.count_nonzero(kinds[0] == VertexKind.FRONTIER) >= 3  # without the snap: left open
+    assert np.all(kinds[1] == VertexKind.FREE)
+
+
 def test_closing_through_the_graph_since_a_keyframe_tests_only_the_views_from_it_on():
     """The planner re-checks a keyframe with only the views added since its last check (no loop
     closure in between): an older view is not tested again, a newer one is."""

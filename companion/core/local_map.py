@@ -37,6 +37,10 @@ class MapParams:
     chain_margin_per_hop_m: float = 0.05
     chain_max_margin_m: float = 1.0
     chain_max_hops: int = 400
+    # and a vertex this close to a wall such a view saw is closed too (as ``wall_snap_m`` does
+    # within the neighbourhood): a vertex a view left on a wall it saw at a grazing angle, where
+    # only views outside the neighbourhood saw that wall closer.
+    graph_wall_snap_m: float = 0.15
     # Without a SLAM back end (no loop closures), a revisited place never joins the neighbourhood
     # and a new view's frontiers there would send the vehicle round the same room for ever: close
     # each new keyframe's frontiers against every view along the graph too. It can close a real
@@ -244,7 +248,9 @@ class LocalMap:
         count: a vertex by a wall the other view saw has nothing beyond it but that wall, and
         asking for space deeper beyond such a vertex (as along its outward normal) asked for
         space inside the wall, so the frontiers a view leaves along a wall it sees at a grazing
-        angle stayed open and were flown to one by one after the room was seen."""
+        angle stayed open and were flown to one by one after the room was seen. A vertex that
+        close to a wall such a view saw (``graph_wall_snap_m``) closes too, as one by a wall of
+        its neighbourhood does: the views that saw that wall closer are often not neighbours."""
         kf = self.keyframes[keyframe_id]
         idx = kf.open_frontier_indices()
         if idx.size == 0:
@@ -283,9 +289,29 @@ class LocalMap:
             hit = np.zeros(ask.shape, dtype=bool)
             hit[ask] = deep
             seen |= hit.any(axis=0)
+        if p.graph_wall_snap_m > 0.0 and not seen.all():
+            seen |= self._near_walls_of(ids, np.stack((x[:, 0], y[:, 0]), axis=-1))
         closed = idx[seen]
         kf.close(closed)
         return int(closed.size)
+
+    def _near_walls_of(self, ids: NDArray[np.intp], vertices_xy: FloatArray) -> NDArray[np.bool_]:
+        """Which vertices lie within ``graph_wall_snap_m`` of a wall one of these views saw, all
+        views at once; ``vertices_xy`` (views, vertices, 2) holds the vertices in each view's frame."""
+        walls = [self.keyframes[int(k)].walls for k in ids]
+        counts = np.array([w.shape[0] for w in walls], dtype=np.intp)
+        if counts.sum() == 0:
+            return np.zeros(vertices_xy.shape[1], dtype=bool)
+        segments = np.concatenate(walls)  # (M, 2, 2), every view's walls in its own frame
+        owner = np.repeat(np.arange(ids.size), counts)
+        pts = vertices_xy[owner]  # (M, vertices, 2): each wall with the vertices in its view's frame
+        a = segments[:, None, 0, :]
+        ab = segments[:, None, 1, :] - a
+        ap = pts - a
+        t = np.clip(np.sum(ap * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-12), 0.0, 1.0)
+        gap = ap - t[..., None] * ab
+        near: NDArray[np.bool_] = (np.hypot(gap[..., 0], gap[..., 1]) < self.params.graph_wall_snap_m).any(axis=0)
+        return near
 
     def close_frontiers(self, keyframe_id: int, indices: NDArray[np.intp]) -> None:
         """Type frontier vertices free: looked at, nothing beyond them to explore."""
