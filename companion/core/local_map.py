@@ -289,37 +289,15 @@ class LocalMap:
             hit = np.zeros(ask.shape, dtype=bool)
             hit[ask] = deep
             seen |= hit.any(axis=0)
-        if p.graph_wall_snap_m > 0.0 and not seen.all():
+        walls = [self.keyframes[int(k)].walls.reshape(-1, 2) for k in ids]
+        if p.graph_wall_snap_m > 0.0 and not seen.all() and any(w.size for w in walls):
+            # The still-open vertices against those views' walls, moved into this keyframe's frame.
+            frames = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses]
             ask = np.flatnonzero(~seen)
-            seen[ask] = self._near_walls_of(ids, np.stack((x[:, 0, ask], y[:, 0, ask]), axis=-1))
+            seen[ask] = _near(v[ask], apply_grouped(frames, walls).reshape(-1, 2, 2), p.graph_wall_snap_m)
         closed = idx[seen]
         kf.close(closed)
         return int(closed.size)
-
-    def _near_walls_of(self, ids: NDArray[np.intp], vertices_xy: FloatArray) -> NDArray[np.bool_]:
-        """Which vertices lie within ``graph_wall_snap_m`` of a wall one of these views saw, all
-        views at once; ``vertices_xy`` (views, vertices, 2) holds the vertices in each view's frame."""
-        snap = self.params.graph_wall_snap_m
-        near = np.zeros(vertices_xy.shape[1], dtype=bool)
-        walls = [self.keyframes[int(k)].walls for k in ids]
-        counts = np.array([w.shape[0] for w in walls], dtype=np.intp)
-        if counts.sum() == 0:
-            return near
-        segments = np.concatenate(walls)  # (M, 2, 2), every view's walls in its own frame
-        owner = np.repeat(np.arange(ids.size), counts)
-        # Only walls within the snap of the box round the vertices (in their view's frame) can be near.
-        lo, hi = vertices_xy.min(axis=1)[owner] - snap, vertices_xy.max(axis=1)[owner] + snap
-        keep = np.all((segments.max(axis=1) >= lo) & (segments.min(axis=1) <= hi), axis=1)
-        if not keep.any():
-            return near
-        segments, pts = segments[keep], vertices_xy[owner[keep]]  # each wall with the vertices in its view's frame
-        a = segments[:, None, 0, :]
-        ab = segments[:, None, 1, :] - a
-        ap = pts - a
-        t = np.clip(np.sum(ap * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-12), 0.0, 1.0)
-        gap = ap - t[..., None] * ab
-        near |= (np.hypot(gap[..., 0], gap[..., 1]) < snap).any(axis=0)
-        return near
 
     def close_frontiers(self, keyframe_id: int, indices: NDArray[np.intp]) -> None:
         """Type frontier vertices free: looked at, nothing beyond them to explore."""
