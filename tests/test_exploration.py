@@ -13,7 +13,7 @@ from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.fov_polygon import PolygonParams, VertexKind
 from companion.core.geometry import Pose2
 from companion.core.local_map import MapParams
-from companion.core.messages import DepthScan, LoopClosure, Odometry
+from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Mode, PlannerParams
 from companion.core.pose_graph import EdgeType
 from companion.core.setpoint_lead import LeadParams
@@ -366,9 +366,45 @@ def test_an_estimator_reset_carries_the_remembered_returns_over():
     just before stays remembered, moved with the jump, not aged out as 10 m of travel."""
     ex = Explorer()
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2), reset_counter=0), _wall_ahead_scan(0.0, 0.6))
-    here = Pose2(10.0, 0.0, math.pi / 2)
-    ex.step(Odometry(0.1, here, reset_counter=1))
-    ex.step(Odometry(0.2, here, reset_counter=1), _wall_ahead_scan(0.2, 0.6))  # the same wall again
+    ex.step(Odometry(0.1, Pose2(10.0, 0.0, math.pi / 2), reset_counter=1))
+    east = Pose2(10.0, 0.0, -0.3)  # then turned away from the wall, so no scan sees it again
+    ex.step(Odometry(0.2, east, reset_counter=1), DepthScan(0.2, BEARINGS, np.full(64, 5.0), 5.0))
     wall = ex.obstacles_xy
-    assert wall.shape[0] == 128  # both scans' returns: the first was not aged out by the jump
+    assert wall.shape[0] == 64  # the first scan's returns: not aged out by the jump
     assert np.allclose(wall[:, 1], 0.6) and np.allclose(wall[:, 0].mean(), 10.0, atol=0.05)
+
+
+def test_a_hovering_vehicle_keeps_the_wall_beside_it_and_each_return_once():
+    """Hovering 30 s facing east (a wall 2 m ahead, seen ten times a second), the vehicle still
+    remembers the wall 0.6 m north it saw before turning: it ages by travel, not time (with a
+    5 s limit a vehicle that hovered beside a thin wall's end forgot it and turned onto it).
+    The eastern wall, seen again and again, is held once: the newest scan supersedes what it
+    sees, so the memory does not grow while the vehicle hovers."""
+    ex = Explorer()
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
+    east = Pose2(0.0, 0.0, -0.3)  # its field of view shares no ray with the northern one
+    for i in range(1, 301):
+        ex.step(Odometry(0.1 * i, east), _wall_ahead_scan(0.1 * i, 2.0))
+    held = ex.obstacles_xy
+    north = np.isclose(held[:, 1], 0.6)
+    assert north.sum() == 64  # the north wall, out of view for 30 s, still there
+    assert held.shape[0] == 128  # and the eastern wall once, the newest scan's
+
+
+def test_held_by_a_remembered_wall_alone_the_vehicle_turns_to_look_at_it():
+    """The vehicle saw a wall 0.4 m north, then turned east (open space in view). Asked to go
+    north, the remembered wall holds it where the newest scan alone would not: the setpoint
+    stays put and faces the wall, so the next scans see whether it is still there, rather than
+    the vehicle waiting on a memory that never expires or forgetting a wall beside it."""
+    ex = Explorer()
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.4))
+    east = Pose2(0.0, 0.0, -0.3)
+    ex.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
+    assert ex.obstacles_xy.shape[0] == 64  # the north wall, remembered
+    sp = ex._within_lead(Setpoint(0.2, 3.0, -0.3), east, (0.0, 0.0))
+    assert math.hypot(sp.x_m, sp.y_m) < 0.05  # held
+    assert math.pi / 4 <= sp.yaw_rad <= 3 * math.pi / 4  # facing the wall
+    assert ex.looks_at_remembered == 1
+    # Going east, away from it, the wall holds nothing: the planner's yaw stands.
+    free = ex._within_lead(Setpoint(3.0, -0.5, -0.3), east, (0.0, 0.0))
+    assert math.hypot(free.x_m, free.y_m) > 1.0 and free.yaw_rad == -0.3

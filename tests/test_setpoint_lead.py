@@ -7,7 +7,7 @@ import pytest
 
 from companion.core.geometry import Pose2
 from companion.core.messages import Setpoint
-from companion.core.setpoint_lead import LeadParams, limit_lead
+from companion.core.setpoint_lead import LeadParams, limit_lead, remembered_blocker
 
 BODY_M = 0.25
 PARAMS = LeadParams(max_lead_m=1.5, contact_margin_m=0.05, stop_margin_m=0.1, speed_margin_s=0.0)  # touching at 0.3 m
@@ -90,3 +90,23 @@ def test_a_remembered_return_is_given_a_wider_berth_than_one_in_view():
     assert lead_of(limit_lead(sp, pose, (0.0, 0.0), beside, BODY_M, params), pose) == pytest.approx(1.5)
     held = limit_lead(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, remembered_xy=beside)
     assert lead_of(held, pose) < 1.0 - 0.1  # short of the point, by the stop margin at least
+
+
+def test_held_by_a_remembered_return_alone_the_vehicle_is_told_to_look_at_it():
+    """A return out of view, 0.33 m off the line just ahead, holds the vehicle (the memory's
+    wider berth), where the newest scan alone would let it go: that return is the one to look
+    at, so the sensor decides. In view, or with a newest return holding it too, there is nothing
+    to look at: the scan already decides."""
+    params = LeadParams(
+        max_lead_m=1.5, contact_margin_m=0.05, stop_margin_m=0.1, speed_margin_s=0.0, memory_margin_m=0.05
+    )
+    pose, sp = Pose2(0.0, 0.0, 0.0), Setpoint(3.0, 0.0, 0.0)
+    beside = np.array([[0.2, 0.33], [0.0, -1.0], [1.0, 0.9]])
+    held = limit_lead(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, remembered_xy=beside)
+    assert lead_of(held, pose) == pytest.approx(0.0)
+    blocker = remembered_blocker(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, beside)
+    assert blocker is not None and np.allclose(blocker, [0.2, 0.33])
+    assert remembered_blocker(sp, pose, (0.0, 0.0), beside, BODY_M, params, NO_RETURNS) is None
+    assert remembered_blocker(sp, pose, (0.0, 0.0), wall(0.35), BODY_M, params, beside) is None
+    # Away from it the memory does not hold the vehicle: nothing to look at.
+    assert remembered_blocker(Setpoint(-3.0, 0.0, 0.0), pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, beside) is None

@@ -19,12 +19,12 @@ import shapely
 from numpy.typing import NDArray
 
 from companion.core.errors import CoreError
-from companion.core.fov_polygon import PolygonParams, on_scanned_surface, returns_xy, scan_to_polygon, seen_free
+from companion.core.fov_polygon import PolygonParams, in_view, on_scanned_surface, returns_xy, scan_to_polygon
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
-from companion.core.setpoint_lead import LeadParams, limit_lead
+from companion.core.setpoint_lead import LeadParams, limit_lead, remembered_blocker
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,8 +39,12 @@ class ExplorerParams:
     velocity_window_s: float = 0.2  # odometry differenced over this long for the vehicle's velocity
     # Obstacle returns of recent scans stay in the setpoint's lead limit: a door jamb that has
     # left the sensor's field of view beside the vehicle still stops it short of contact. They
-    # are kept for this long and this far of travel (odometry drifts with distance), and dropped
-    # where the newest scan sees through them by the margin. 0 s keeps the newest scan's only.
+    # are kept for this far of travel (odometry drifts with distance) and this long (people
+    # move), until the newest scan's field of view takes them in: there the sensor is the
+    # authority (it sees through them, or the surface again, or hides them behind a nearer
+    # return). So hovering keeps what lies beside the vehicle: with a 5 s limit a vehicle that
+    # hovered 0.4 m from a thin wall's end, out of view, forgot it and turned onto it (longhall
+    # seeds 2 and 3). 0 s keeps the newest scan's only.
     # (Planning keeps to the newest scan: remembered returns, a little off after travel, closed
     # narrow doors to the free-space grid and ended office runs early.)
     # Flying back through known space, a loop closure this fresh relocalises the vehicle at the
@@ -51,9 +55,8 @@ class ExplorerParams:
     # that reaches its stamp: placed by an older pose, a scan's polygon is off by the motion
     # since, and a turn swings its far end by metres (one 0.1 s lag tripled a room's time).
     scan_odometry_wait_s: float = 0.5
-    obstacle_memory_s: float = 5.0
+    obstacle_memory_s: float = 60.0
     obstacle_memory_m: float = 1.5
-    obstacle_seen_through_m: float = 0.1
     lead: LeadParams = field(default_factory=LeadParams)  # how far setpoints may lead the vehicle
 
 
@@ -138,11 +141,14 @@ class RecentReturns:
         self._scans = deque((t, d, correction.apply(pts)) for t, d, pts in self._scans)
 
     def keep(self, mask: NDArray[np.bool_]) -> None:
-        """Forget the points whose entry in ``mask`` (one per point of :meth:`points_xy`) is False."""
+        """Forget the points whose entry in ``mask`` (one per point of :meth:`points_xy`) is False;
+        a scan left with none is dropped, the newest kept (see :meth:`newest_count`)."""
         start, kept = 0, deque[tuple[float, float, FloatArray]]()
-        for t, d, pts in self._scans:
-            kept.append((t, d, pts[mask[start : start + pts.shape[0]]]))
+        for i, (t, d, pts) in enumerate(self._scans):
+            left = pts[mask[start : start + pts.shape[0]]]
             start += pts.shape[0]
+            if left.shape[0] or i == len(self._scans) - 1:
+                kept.append((t, d, left))
         self._scans = kept
 
 
@@ -158,6 +164,7 @@ class Explorer:
         self.history = OdometryHistory()
         self.loop_closures_rejected = 0
         self.relocalized = 0  # times a loop closure relocalised the vehicle (see _relocalize)
+        self.looks_at_remembered = 0  # steps the vehicle faced a remembered return that held it
         self._want_keyframe = False
         self._need_keyframe = False  # a loop closure found no keyframe near its moment (see there)
         self._last_odom: Odometry | None = None
@@ -255,6 +262,7 @@ class Explorer:
             "frontiers_set_aside": len(self.planner.unreachable(self.map)),
             "frontiers_closed_on_sight": self.planner.closed_on_sight,
             "frontiers_closed_on_surface": self.planner.closed_on_surface,
+            "steps_looking_at_remembered": self.looks_at_remembered,
         }
 
     def add_loop_closure(self, closure: LoopClosure) -> None:
@@ -372,26 +380,34 @@ class Explorer:
 
     def _within_lead(self, sp: Setpoint, pose: Pose2, velocity_in_frame: tuple[float, float]) -> Setpoint:
         """The setpoint limited to the lead (see :mod:`setpoint_lead`), all in the odometry frame:
-        the newest scan's returns, and the earlier ones remembered."""
+        the newest scan's returns, and the earlier ones remembered. Held by remembered returns
+        alone, the vehicle faces the one in its way, so the sensor sees whether it is still there."""
         returns = self._obstacles_xy
-        newest = self._recent.newest_count()
+        split = returns.shape[0] - self._recent.newest_count()
+        newest, remembered = returns[split:], returns[:split]
         vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
-        body_radius_m = self.params.planner.body_radius_m
-        split = returns.shape[0] - newest
-        return limit_lead(
-            sp, pose, (float(vx), float(vy)), returns[split:], body_radius_m, self.params.lead, returns[:split]
-        )
+        velocity = (float(vx), float(vy))
+        radius = self.params.planner.body_radius_m
+        lead = self.params.lead
+        limited = limit_lead(sp, pose, velocity, newest, radius, lead, remembered)
+        blocker = remembered_blocker(sp, pose, velocity, newest, radius, lead, remembered)
+        if blocker is None:
+            return limited
+        self.looks_at_remembered += 1
+        yaw = math.atan2(blocker[1] - pose.y_m, blocker[0] - pose.x_m)
+        return Setpoint(limited.x_m, limited.y_m, yaw)
 
     def _recent_obstacles(self, pose_at_scan: Pose2, newest: DepthScan) -> FloatArray:
-        """The recent returns (odometry frame), less those the newest scan sees through (they
-        are forgotten): drift moves old returns a little, and where the sensor looks now it is
-        the authority."""
+        """The recent returns (odometry frame), less the earlier scans' inside the newest one's
+        view (:func:`in_view`, they are forgotten): drift moves old returns a little, and where
+        the sensor looks now it is the authority. What stays is out of view, or the newest scan."""
         pts = self._recent.points_xy()
-        p = self.params
-        through = seen_free(newest, pose_at_scan, pts, p.obstacle_seen_through_m, p.polygon.frontier_range_tolerance_m)
-        if through.any():
-            self._recent.keep(~through)
-            pts = pts[~through]
+        older = pts.shape[0] - self._recent.newest_count()
+        covered = in_view(newest, pose_at_scan, pts[:older])
+        if covered.any():
+            keep = np.concatenate((~covered, np.ones(pts.shape[0] - older, dtype=bool)))
+            self._recent.keep(keep)
+            pts = pts[keep]
         return pts
 
     def _keyframe_near(self, stamp_s: float, pose: Pose2, gap_s: float) -> int | None:

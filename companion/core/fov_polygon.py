@@ -359,16 +359,15 @@ def on_scanned_surface(
     return surface
 
 
-def seen_free(
-    scan: DepthScan, sensor: Pose2, points_xy: FloatArray, margin_m: float, no_return_margin_m: float
-) -> NDArray[np.bool_]:
-    """Which points the scan sees through: the ray through the point reached at least
-    ``margin_m`` beyond it (a ray without a return reached its maximum range). Rays with an
-    invalid reading (NaN, below the minimum range) see nothing."""
+def in_view(scan: DepthScan, sensor: Pose2, points_xy: FloatArray) -> NDArray[np.bool_]:
+    """Which points the scan has its own say about: inside the field of view, on a ray with a
+    valid reading, at or beyond the minimum range. Such a point is seen through, seen as the
+    surface the ray returned from, or hidden behind it; a remembered return there is
+    superseded by the scan. Points nearer than the minimum range, or on rays with an invalid
+    (NaN) reading, the scan cannot see."""
     rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
     r = scan.ranges_m[j]
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(r) & (r >= scan.min_range_m) | np.isposinf(r)
-        reach = np.where(has_return(scan, no_return_margin_m)[j], r, scan.max_range_m)
-        free: NDArray[np.bool_] = on_ray & valid & (rng < reach - margin_m)
-    return free
+    seen: NDArray[np.bool_] = on_ray & valid & (rng >= scan.min_range_m)
+    return seen

@@ -126,16 +126,24 @@ def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> Floa
     return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)
 
 
-def free_travel_m(points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float) -> float:
+def first_contact(points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float) -> tuple[float, int]:
     """How far a disc of ``radius_m`` at the origin can move along ``direction_xy`` before it
-    touches one of the points (inf when none lies in its way)."""
+    touches one of the points, and which one it touches first ((inf, -1) when none is in its way)."""
     dx, dy = direction_xy
     norm = math.hypot(dx, dy)
     if norm < 1e-9 or points_xy.shape[0] == 0:
-        return math.inf
+        return math.inf, -1
     along = (points_xy[:, 0] * dx + points_xy[:, 1] * dy) / norm
     across = np.abs(points_xy[:, 1] * dx - points_xy[:, 0] * dy) / norm
     hit = (along > 0.0) & (across < radius_m)
     if not hit.any():
-        return math.inf
-    return max(0.0, float(np.min(along[hit] - np.sqrt(radius_m**2 - across[hit] ** 2))))
+        return math.inf, -1
+    travel = np.where(hit, along - np.sqrt(np.maximum(radius_m**2 - across**2, 0.0)), np.inf)
+    i = int(np.argmin(travel))
+    return max(0.0, float(travel[i])), i
+
+
+def free_travel_m(points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float) -> float:
+    """How far a disc of ``radius_m`` at the origin can move along ``direction_xy`` before it
+    touches one of the points (inf when none lies in its way)."""
+    return first_contact(points_xy, direction_xy, radius_m)[0]

@@ -6,6 +6,12 @@ distance, braking to stop on it. So the setpoint is kept within a maximum lead o
 within the free travel the newest scan shows ahead (towards the setpoint, and along the vehicle's
 motion, which carries it on while it turns): the vehicle comes in slowly enough to stop short of a
 seen obstacle, whatever the planner asks next.
+
+Returns remembered from earlier scans (out of view now) hold the vehicle too, with more berth. When
+they alone hold it where the newest scan would let it go, the vehicle turns to look at the one in its
+way (:func:`remembered_blocker`): the sensor then sees it again, or sees through it, and the scan
+decides. Forgetting it instead (an age limit) let a vehicle that had hovered beside a thin wall's
+end turn onto it.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.core.geometry import FloatArray, Pose2, free_travel_m
+from companion.core.geometry import FloatArray, Pose2, first_contact
 from companion.core.messages import Setpoint
 
 
@@ -37,6 +43,10 @@ class LeadParams:
     # a line to the centimetre (a turn, drift, the autopilot's own tracking), and a corner its
     # line passes 0.3 m from at 1.5 m/s is one it may hit; it cannot brake in time once it sees it.
     speed_margin_s: float = 0.15
+    # Remembered returns hold the vehicle when they leave it at most this much lead while the
+    # newest scan alone would leave it at least ``look_lead_m``: then it looks at what holds it.
+    hold_m: float = 0.05
+    look_lead_m: float = 0.2
 
 
 def limit_lead(
@@ -59,21 +69,59 @@ def limit_lead(
     """
     dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
     dist = math.hypot(dx, dy)
-    lead = min(params.max_lead_m, dist)
+    lead, _ = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy)
+    if lead >= dist:
+        return setpoint
+    k = lead / dist
+    return Setpoint(pose.x_m + k * dx, pose.y_m + k * dy, setpoint.yaw_rad)
+
+
+def remembered_blocker(
+    setpoint: Setpoint,
+    pose: Pose2,
+    velocity_xy: tuple[float, float],
+    returns_xy: FloatArray,
+    body_radius_m: float,
+    params: LeadParams,
+    remembered_xy: FloatArray,
+) -> FloatArray | None:
+    """The remembered return to look at, when remembered returns alone hold the vehicle (see
+    :class:`LeadParams`): the one its way touches first. None when nothing remembered holds it."""
+    held, blocker = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy)
+    if blocker is None or held > params.hold_m:
+        return None
+    free, _ = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, None)
+    return blocker if free >= params.look_lead_m else None
+
+
+def _lead_m(
+    setpoint: Setpoint,
+    pose: Pose2,
+    velocity_xy: tuple[float, float],
+    returns_xy: FloatArray,
+    body_radius_m: float,
+    params: LeadParams,
+    remembered_xy: FloatArray | None,
+) -> tuple[float, FloatArray | None]:
+    """The allowed lead, and the remembered return that limits it (None when a newest return,
+    the maximum lead or the setpoint's own distance does)."""
+    dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
+    lead = min(params.max_lead_m, math.hypot(dx, dy))
     speed = math.hypot(*velocity_xy)
     reach = body_radius_m + params.contact_margin_m + params.speed_margin_s * speed
     directions = [(dx, dy)]
     if speed > params.moving_mps:
         directions.append(velocity_xy)
     remembered = np.zeros((0, 2)) if remembered_xy is None else remembered_xy
-    for points, radius in ((returns_xy, reach), (remembered, reach + params.memory_margin_m)):
+    limit: FloatArray | None = None
+    for points, radius, kept in ((returns_xy, reach, False), (remembered, reach + params.memory_margin_m, True)):
         if points.shape[0] == 0:
             continue
         rel = points - [pose.x_m, pose.y_m]
         contact = min(radius, 0.95 * float(np.min(np.hypot(rel[:, 0], rel[:, 1]))))
         for direction in directions:
-            lead = min(lead, max(0.0, free_travel_m(rel, direction, contact) - params.stop_margin_m))
-    if lead >= dist:
-        return setpoint
-    k = lead / dist
-    return Setpoint(pose.x_m + k * dx, pose.y_m + k * dy, setpoint.yaw_rad)
+            travel, i = first_contact(rel, direction, contact)
+            allowed = max(0.0, travel - params.stop_margin_m)
+            if allowed < lead:
+                lead, limit = allowed, (points[i] if kept else None)
+    return lead, limit
