@@ -76,6 +76,82 @@ def test_a_frontier_seen_through_a_door_too_narrow_to_fly_is_approached_not_just
     assert kf.kinds[key.index] == VertexKind.FRONTIER
 
 
+def test_every_goal_faces_its_frontier_vertex():
+    """From a goal on the vertex's ray the vehicle looks at the vertex, not along its normal: a
+    shadow edge's vertex (normal across the ray) lay 90 degrees off the view taken on arrival,
+    which then closed it and its neighbours as looked at, and a room behind a door was never
+    entered (lshape seed 6 ended `complete` at coverage 0.96)."""
+    ranges = 2.0 / np.cos(BEARINGS)  # a wall 2 m ahead with a gap seen through to 5 m
+    gap = (BEARINGS > 0.1) & (BEARINGS < 0.5)
+    ranges[gap] = 5.0
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.3), scan_to_polygon(DepthScan(0.0, BEARINGS, ranges, 5.0)))
+    planner = FrontierPlanner()
+    view = m.view(kf.keyframe_id)
+    candidates = planner._candidates(m, view, Pose2(0.0, 0.0, 0.3), np.zeros(2), dense=True)
+    assert len(candidates) > 10
+    v, n = kf.polygon.vertices_xy, kf.polygon.outward_xy
+    off_normal = 0
+    for c in candidates:
+        to_vertex = v[c.key.index] - c.goal_xy
+        assert abs(math.remainder(c.look_rad - math.atan2(to_vertex[1], to_vertex[0]), math.tau)) < 1e-9
+        normal = math.atan2(n[c.key.index][1], n[c.key.index][0])
+        off_normal += abs(math.remainder(c.look_rad - normal, math.tau)) > 0.3
+    assert off_normal > 0  # some goals (on the ray of a shadow edge's vertex) look off the normal
+
+
+def test_no_goal_repeats_its_keyframes_own_view():
+    """A jamb 0.8 m ahead: its occlusion vertex lies within the standoff of the keyframe's origin,
+    so its goal on the ray is the origin itself, facing about the keyframe's heading, which is
+    the view the keyframe already took. No such goal is offered (flown to, it was looked at and
+    closed, the view taken on arrival found the vertex again, and a vehicle turned on one spot
+    for 20 minutes); goals at the origin that turn to see past the field of view's side stay."""
+    ranges = np.where(BEARINGS < 0.1, 0.8 / np.cos(BEARINGS), 5.0)
+    m = LocalMap()
+    behind = m.add_keyframe(
+        0.0, Pose2(-1.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 1.5), 5.0))
+    )
+    scan = DepthScan(0.1, BEARINGS, ranges, 5.0)
+    kf = m.add_keyframe(0.1, Pose2(0.0, 0.0, 0.0), scan_to_polygon(scan), (behind.keyframe_id, Pose2(1.0, 0.0, 0.0)))
+    v = kf.polygon.vertices_xy[targetable_indices(kf, 0.3)]
+    near_ahead = (np.hypot(v[:, 0], v[:, 1]) < 1.0) & (np.abs(np.arctan2(v[:, 1], v[:, 0])) < 0.5)
+    assert near_ahead.any()  # the jamb's occlusion vertex, a frontier within the standoff
+    planner = FrontierPlanner()
+    candidates = planner._candidates(m, m.view(kf.keyframe_id), Pose2(0.0, 0.0, 0.0), np.zeros(2), dense=True)
+    at_origin = [c for c in candidates if c.key.keyframe_id == kf.keyframe_id and np.hypot(*c.goal_xy) <= 0.3]
+    assert at_origin  # turning on the spot to see past the side edges is still a goal
+    assert all(abs(c.look_rad) >= 0.5 for c in at_origin)
+
+
+def test_a_goal_is_not_dropped_on_the_spot_it_was_taken_unless_the_newest_scan_blocks_it():
+    """A view taken a step after a goal was committed, on the same spot, has its own
+    neighbourhood, which may judge the path blocked where the one it was taken in did not:
+    dropping it there made a vehicle go back to the old keyframe, take a goal, take a view,
+    drop it, for two minutes. Only the newest scan can drop it before the vehicle moves."""
+    no_sides = PolygonParams(side_frontier_spacing_m=0.0)
+    wall_scan = DepthScan(0.0, BEARINGS, 1.5 / np.cos(BEARINGS), 5.0)  # a wall across, 1.5 m ahead
+    wall_returns = np.column_stack((np.full(64, 1.5), 1.5 * np.tan(BEARINGS)))
+
+    def committed_then_walled() -> tuple[LocalMap, int, FrontierPlanner, FrontierKey]:
+        m = LocalMap()
+        scan_5m = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+        a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(scan_5m, no_sides))
+        planner = FrontierPlanner()
+        assert planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.EXPLORING
+        assert planner.goal is not None and np.hypot(*planner.goal.local_xy) > 2.0  # beyond the wall
+        b = m.add_keyframe(0.1, Pose2(0.0, 0.0, 0.0), scan_to_polygon(wall_scan, no_sides), (a.keyframe_id, Pose2()))
+        return m, b.keyframe_id, planner, planner.goal.key
+
+    m, b, planner, key = committed_then_walled()
+    planner.plan(m, b, Pose2(0.0, 0.0, 0.0), 0.1)
+    assert planner.goal is not None and planner.goal.key == key  # the map alone: kept on the spot
+    planner.plan(m, b, Pose2(0.5, 0.0, 0.0), 0.2)
+    assert planner.goal is None or planner.goal.key != key  # moved: the map judges it again
+    m, b, planner, key = committed_then_walled()
+    planner.plan(m, b, Pose2(0.0, 0.0, 0.0), 0.1, wall_returns)
+    assert planner.goal is None or planner.goal.key != key  # the newest scan sees it blocked
+
+
 def test_a_frontier_a_view_beyond_the_neighbourhood_saw_past_is_not_flown_to():
     """The vehicle went round the block: a later view C saw past A's frontier ahead, but the
     graph reaches C from A only through a view that overlaps neither, so C is not in A's

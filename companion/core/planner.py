@@ -53,6 +53,7 @@ class PlannerParams:
     max_candidates_checked: int = 24
     distance_weight_rad_per_m: float = 0.08
     goal_reached_m: float = 0.3
+    same_view_rad: float = 0.5  # a goal at a keyframe's origin turned less than this repeats its view
     waypoint_reached_m: float = 0.5
     look_reached_rad: float = 0.3
     settle_s: float = 1.0
@@ -121,6 +122,7 @@ class _Goal:
     arrived_s: float | None = None
     path: FloatArray | None = None  # waypoints to the goal point, in the frontier keyframe's frame
     approach: bool = False  # only as near as the free space leads, to look again from there
+    start_local_xy: tuple[float, float] = (math.nan, math.nan)  # where it was taken, same frame
 
 
 @dataclass(slots=True)
@@ -291,10 +293,23 @@ class FrontierPlanner:
             # Settle where it arrived: a new keyframe may re-express the goal a little elsewhere
             # (another chain of the graph), and chasing that would creep towards walls.
             return Decision(Mode.EXPLORING, Target(vehicle.x_m, vehicle.y_m, look), goal.key)
-        if dist > self.params.goal_reached_m and not self._accessible(view, here, goal_xy, required):
+        if dist > self.params.goal_reached_m and not self._still_accessible(view, pose, here, goal, goal_xy, required):
             self._drop(goal.key, stamp_s)
             return None
         return self._fly(vehicle, goal_xy, look, Mode.EXPLORING, goal.key)
+
+    def _still_accessible(
+        self, view: LocalView, pose: Pose2, here: FloatArray, goal: _Goal, goal_xy: FloatArray, required: float
+    ) -> bool:
+        """The committed goal's straight path is still accessible. Where the vehicle has not moved
+        since it was taken, only the newest scan can change that: a view taken there a step later
+        (turning to it) has another neighbourhood, which judged it blocked, and the vehicle went
+        back to the keyframe it was taken from, took it again, turned, took a view, dropped it...
+        for two minutes on one spot (offices2, 600 keyframes)."""
+        start = np.array(pose.apply_point(*goal.start_local_xy))
+        if not float(np.hypot(*(here - start))) <= self.params.goal_reached_m:  # moved (or unknown)
+            return self._accessible(view, here, goal_xy, required)
+        return bool(self._clear_of_live(here, goal_xy.reshape(1, 2), required)[0])
 
     def _leg_required(self, required: float) -> float:
         """A leg through known free space needs the body radius clear, not the whole margin."""
@@ -341,7 +356,10 @@ class FrontierPlanner:
         budget = max(self.params.goal_timeout_min_s, 3.0 * dist / self.params.cruise_speed_mps)
         path = None if c.path is None else pose.apply(c.path)
         look = wrap_angle(c.look_rad + pose.yaw_rad)
-        self.goal = _Goal(c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path, approach=c.approach)
+        sx, sy = pose.apply_point(float(here[0]), float(here[1]))
+        self.goal = _Goal(
+            c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path, approach=c.approach, start_local_xy=(sx, sy)
+        )
         self._arrived_at = None
 
     def _off_surfaces(
@@ -449,12 +467,22 @@ class FrontierPlanner:
                 for shift in (-p.side_shift_m, p.side_shift_m):
                     for back in (p.standoff_m, 1.5 * p.standoff_m):
                         variants.append(v - back * n + shift * side)
-            look = np.arctan2(*pose.rotate(n)[:, ::-1].T)
             for pts in variants:
-                goals.append(pose.apply(pts))
-                looks.append(look)
-                key_ids.append(np.full(idx.size, k, dtype=np.intp))
-                key_idx.append(idx)
+                # Face the vertex from the goal: along its normal from the normal point, along the
+                # ray from a goal on its ray (looking along the normal from there, a shadow edge's
+                # vertex lay 90 degrees off the view taken on arrival, which then closed it and its
+                # neighbours as looked at: a room behind a door was never entered).
+                to_vertex = v - pts
+                look_local = np.arctan2(to_vertex[:, 1], to_vertex[:, 0])
+                # A goal at the keyframe's own origin, facing about its heading, would take the
+                # keyframe's own view again: nothing to learn (a vertex near the origin has its
+                # ray goal there). Flown to, it was looked at and closed, the arrival's view
+                # found it again as a new vertex, and apartment 5 turned on one spot for 20 min.
+                fresh = (np.hypot(pts[:, 0], pts[:, 1]) > p.goal_reached_m) | (np.abs(look_local) >= p.same_view_rad)
+                goals.append(pose.apply(pts[fresh]))
+                looks.append(wrap_angles(look_local[fresh] + pose.yaw_rad))
+                key_ids.append(np.full(int(fresh.sum()), k, dtype=np.intp))
+                key_idx.append(idx[fresh])
         if not goals:
             return []
         g = np.vstack(goals)
