@@ -256,3 +256,35 @@ def test_the_last_leg_of_a_path_through_free_space_is_judged_like_its_other_legs
             assert (decision.target.x_m, decision.target.y_m) == (3.0, 0.0)
         else:
             assert decision.goal != key and key in planner._cooling
+
+
+def test_after_a_loop_closure_each_step_walks_the_graph_for_a_bounded_number_of_keyframes():
+    """After a loop closure every keyframe's check through the graph walks the whole graph
+    afresh (1-2 ms each on a large map); a step does at most `fresh_graph_checks_per_step` of
+    them, and the keyframes left over are checked on the next steps, none skipped for good."""
+    m = LocalMap()
+    prev: tuple[int, Pose2] | None = None
+    ids = []
+    for k in range(6):  # far apart: no two are neighbours, each keeps its frontiers
+        pose = Pose2(12.0 * k, 0.0, 0.0)
+        parent = None if prev is None else (prev[0], prev[1].between(pose))
+        kf = m.add_keyframe(float(k), pose, scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)), parent)
+        ids.append(kf.keyframe_id)
+        prev = (kf.keyframe_id, pose)
+    m.add_loop_closure(ids[0], ids[-1], Pose2(60.0, 0.0, 0.0))
+    fresh: list[int] = []
+    check = m.close_through_graph
+
+    def counting(keyframe_id: int, since_id: int = 0) -> int:
+        if since_id == 0:
+            fresh.append(keyframe_id)
+        return check(keyframe_id, since_id)
+
+    m.close_through_graph = counting  # type: ignore[method-assign]
+    planner = FrontierPlanner(PlannerParams(fresh_graph_checks_per_step=2))
+    for step in range(3):
+        planner._fresh_checks_left = planner.params.fresh_graph_checks_per_step  # as plan() does
+        for k in ids:
+            assert planner._has_live_targets(m, k)  # unchecked ones still count as open
+        assert len(fresh) == 2 * (step + 1)
+    assert sorted(fresh) == sorted(ids)  # each walked once, over three steps

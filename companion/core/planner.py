@@ -74,6 +74,10 @@ class PlannerParams:
     sidestep_lengths_m: tuple[float, ...] = (0.5, 0.8, 1.2)
     sidestep_gain_m: float = 0.3
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
+    # Checking a keyframe's frontiers through the graph after a loop closure walks the whole graph
+    # (1-2 ms on a map of 400 keyframes), and one step could ask for several: at most this many
+    # per step; the others are checked on the next steps (until then they count as open).
+    fresh_graph_checks_per_step: int = 2
     grid: GridParams = field(default_factory=GridParams)  # paths where a straight line is blocked
     goal_clearance_m: float = 0.3  # where a straight path ends keeps this clear, however close the start
     blocked_cooldown_s: float = 5.0  # a goal dropped as blocked is not taken again for this long
@@ -170,6 +174,7 @@ class FrontierPlanner:
     closed_on_surface: int = 0  # frontiers closed because the newest scan sees a surface right there
     # keyframe -> (map size, loop closures) when its frontiers were last closed through the graph
     _graph_checked: dict[int, tuple[int, int]] = field(default_factory=dict)
+    _fresh_checks_left: int = 0  # graph checks after a loop closure still allowed in this step
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     _progress_target: int | None = None
     _progress_s: float = 0.0
@@ -216,6 +221,7 @@ class FrontierPlanner:
         self._live_view = live_view
         self._live_surface = live_surface
         self._cooling = {k: t for k, t in self._cooling.items() if t > stamp_s}
+        self._fresh_checks_left = self.params.fresh_graph_checks_per_step
         required = self._required_clearance(view, here)
         self._live_floor_m = self._live_floor(here)
 
@@ -643,7 +649,7 @@ class FrontierPlanner:
         if (
             self.route is None
             or self.route.target_keyframe not in local_map.keyframes
-            or not self._has_targets(local_map, self.route.target_keyframe)
+            or not self._has_live_targets(local_map, self.route.target_keyframe)
         ):
             self.route = self._find_route(local_map, frame_id)
             self._arrived_at = None
@@ -869,10 +875,14 @@ class FrontierPlanner:
         now = (len(local_map), local_map.loop_closures)
         before = self._graph_checked.get(keyframe_id)
         if before != now:
-            self._graph_checked[keyframe_id] = now
             # With no loop closure since the last check, only the views added since can close
             # anything: a new keyframe hangs off the graph by one edge and moves no old path.
             since = before[0] if before is not None and before[1] == now[1] else 0
+            if since == 0:  # a walk of the whole graph: within the step's budget
+                if self._fresh_checks_left <= 0:
+                    return
+                self._fresh_checks_left -= 1
+            self._graph_checked[keyframe_id] = now
             local_map.close_through_graph(keyframe_id, since_id=since)
 
     def _find_route(self, local_map: LocalMap, frame_id: int, target_id: int | None = None) -> _Route | None:
