@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.core.errors import ScanError
-from companion.core.fov_polygon import PolygonParams, VertexKind, on_scanned_surface, scan_to_polygon
+from companion.core.fov_polygon import PolygonParams, VertexKind, in_view, on_scanned_surface, scan_to_polygon
 from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan
 from sitl.depth_sensor import cast_rays
@@ -207,3 +207,34 @@ def test_an_occlusion_frontier_is_not_taken_for_surface():
     occlusion = frontier[np.isclose(np.linalg.norm(frontier, axis=1), 1.5, atol=0.05)]
     assert occlusion.shape[0] >= 1
     assert not on_scanned_surface(scan(r), Pose2(0.0, 0.0, 0.0), occlusion, 0.15, 0.02).any()
+
+
+def test_in_view_is_what_the_scan_has_its_own_say_about():
+    """A point the scan sees through, sees as its surface or hides behind a return is in view
+    (a remembered return there is superseded); one outside the field of view, nearer than the
+    minimum range, on a ray with an invalid reading, or past the maximum range where the ray
+    returned nothing, the scan cannot see."""
+    bearings = np.linspace(-math.pi / 4, math.pi / 4, 64)
+    ranges = np.full(64, 2.0)  # a wall 2 m along every ray ...
+    ranges[bearings > 0.5] = 5.0  # ... but no return on the left-most rays (5 m: the maximum)
+    ranges[np.abs(bearings) < 0.02] = np.nan  # and an invalid reading straight ahead
+    scan = DepthScan(0.0, bearings, ranges, 5.0, min_range_m=0.3)
+
+    def at(bearing: float, range_m: float) -> list[float]:
+        return [range_m * math.cos(bearing), range_m * math.sin(bearing)]
+
+    points = np.array(
+        [
+            at(-0.3, 1.0),  # seen through
+            at(-0.3, 2.0),  # the surface
+            at(-0.3, 3.0),  # hidden behind it
+            at(0.7, 4.0),  # seen through, no return
+            at(0.7, 6.0),  # past the maximum range, no return: not seen
+            at(-0.3, 0.2),  # nearer than the minimum range
+            at(0.0, 1.0),  # on the invalid ray
+            at(1.2, 1.0),  # outside the field of view
+        ]
+    )
+    sensor = Pose2(1.0, -2.0, 0.4)  # the same, placed in another frame
+    got = in_view(scan, sensor, sensor.apply(points))
+    assert got.tolist() == [True, True, True, True, False, False, False, False]

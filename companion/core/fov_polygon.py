@@ -361,13 +361,14 @@ def on_scanned_surface(
 
 def in_view(scan: DepthScan, sensor: Pose2, points_xy: FloatArray) -> NDArray[np.bool_]:
     """Which points the scan has its own say about: inside the field of view, on a ray with a
-    valid reading, at or beyond the minimum range. Such a point is seen through, seen as the
-    surface the ray returned from, or hidden behind it; a remembered return there is
-    superseded by the scan. Points nearer than the minimum range, or on rays with an invalid
-    (NaN) reading, the scan cannot see."""
+    valid reading, at or beyond the minimum range (and within the maximum range where the ray
+    returned nothing). Such a point is seen through, seen as the surface the ray returned from,
+    or hidden behind it; a remembered return there is superseded by the scan. Points nearer than
+    the minimum range, or on rays with an invalid (NaN) reading, the scan cannot see."""
     rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
     r = scan.ranges_m[j]
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(r) & (r >= scan.min_range_m) | np.isposinf(r)
-    seen: NDArray[np.bool_] = on_ray & valid & (rng >= scan.min_range_m)
+        out_of_range = (rng > scan.max_range_m) & ~(r < scan.max_range_m)
+    seen: NDArray[np.bool_] = on_ray & valid & (rng >= scan.min_range_m) & ~out_of_range
     return seen
