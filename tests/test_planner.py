@@ -288,3 +288,16 @@ def test_after_a_loop_closure_each_step_walks_the_graph_for_a_bounded_number_of_
             assert planner._has_live_targets(m, k)  # unchecked ones still count as open
         assert len(fresh) == 2 * (step + 1)
     assert sorted(fresh) == sorted(ids)  # each walked once, over three steps
+
+
+def test_a_leg_blocked_when_faced_is_planned_again_only_so_often_from_one_spot():
+    """Two plans of one route leg, each blocked once faced (the sensor sees one way at a time),
+    alternated for minutes on one spot. From one spot a leg is planned again `leg_replans` times,
+    then counts as blocked; moved on, or towards another keyframe, it may be planned again."""
+    planner = FrontierPlanner(PlannerParams(leg_replans=2, goal_reached_m=0.3))
+    here = np.array([1.0, 2.0])
+    assert planner._may_replan(7, 5, here)
+    assert planner._may_replan(7, 5, here + 0.05)
+    assert not planner._may_replan(7, 5, here)  # the third time from the same spot: blocked
+    assert planner._may_replan(7, 5, here + 1.0)  # moved on
+    assert planner._may_replan(7, 4, here + 1.0)  # another keyframe

@@ -81,6 +81,10 @@ class PlannerParams:
     grid: GridParams = field(default_factory=GridParams)  # paths where a straight line is blocked
     goal_clearance_m: float = 0.3  # where a straight path ends keeps this clear, however close the start
     blocked_cooldown_s: float = 5.0  # a goal dropped as blocked is not taken again for this long
+    # A route leg found blocked once faced is planned again with the newest scan this many times
+    # from one spot, then counts as blocked: two plans, each blocked once faced (the sensor sees
+    # one way at a time), alternated for minutes.
+    leg_replans: int = 2
     corner_reached_m: float = 0.25  # a path's corner counts as passed this close (slow, no overshoot)
     corner_speed_mps: float = 0.5  # and a waypoint as reached only this slow: a sharp turn after it
     # must not carry the vehicle's momentum sideways into a wall
@@ -179,6 +183,7 @@ class FrontierPlanner:
     _progress_target: int | None = None
     _progress_s: float = 0.0
     _leg: _Leg | None = None
+    _replans: tuple[int, int, float, float, int] | None = None  # frame, keyframe, x, y, count
     _tried_in_vain: int | None = None  # keyframe whose frontiers were last tried from it in vain
     _arrived_at: int | None = None  # route keyframe last arrived at (its origin, or its leg's end)
     _cooling: dict[FrontierKey, float] = field(default_factory=dict)  # dropped goal -> until when
@@ -706,7 +711,7 @@ class FrontierPlanner:
         else:
             points, fresh = self._leg_points(local_map, frame_id, view, here, nxt, wp, required)
         if self._leg_blocked(vehicle, here, points[0], required):
-            if not fresh:  # planned before the newest scan: plan again with it
+            if not fresh and self._may_replan(frame_id, nxt, here):  # plan again with the newest scan
                 self._leg = None
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
             aim = self._sidestep(here, wp, required)
@@ -844,6 +849,19 @@ class FrontierPlanner:
         short = float(np.hypot(*(pts[-1] - wp))) > self.params.waypoint_reached_m
         self._leg = _Leg(frame_id, keyframe_id, pts, ends_short=short)
         return pts, True
+
+    def _may_replan(self, frame_id: int, keyframe_id: int, here: FloatArray) -> bool:
+        """Whether a leg planned before the newest scan and found blocked once faced may be planned
+        again, or counts as blocked: at most ``leg_replans`` times from one spot."""
+        r = self._replans
+        same = (
+            r is not None
+            and (r[0], r[1]) == (frame_id, keyframe_id)
+            and math.hypot(float(here[0]) - r[2], float(here[1]) - r[3]) <= self.params.goal_reached_m
+        )
+        count = r[4] + 1 if same and r is not None else 1
+        self._replans = (frame_id, keyframe_id, float(here[0]), float(here[1]), count)
+        return count <= self.params.leg_replans
 
     def _reached(self, point: FloatArray, here: FloatArray, radius_m: float) -> bool:
         """Within ``radius_m`` of a waypoint and slow enough to turn there."""
