@@ -3,7 +3,7 @@ import math
 import numpy as np
 
 from companion.core.fov_polygon import returns_xy
-from companion.core.geometry import Pose2, free_travel_m
+from companion.core.geometry import Pose2, first_contact
 from companion.core.planner import PlannerParams
 from sitl.coverage import CoverageGrid
 from sitl.grid_explorer import FREE, OCCUPIED, UNKNOWN, GridExplorer
@@ -77,5 +77,5 @@ def test_grid_baseline_setpoints_go_through_the_same_lead_limit_as_the_products(
         direction = (sp.x_m - pose.x_m, sp.y_m - pose.y_m)
         if lead > 1e-6:
             touch = PlannerParams().body_radius_m + policy.lead.contact_margin_m
-            assert free_travel_m(returns, direction, min(touch, 0.95 * float(np.min(np.hypot(*returns.T))))) >= lead
+            assert first_contact(returns, direction, min(touch, 0.95 * float(np.min(np.hypot(*returns.T)))))[0] >= lead
         frame = sim.advance(Pose2(sp.x_m, sp.y_m, sp.yaw_rad))

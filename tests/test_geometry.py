@@ -6,7 +6,7 @@ import shapely
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.core.geometry import Pose2, free_travel_m, wrap_angle
+from companion.core.geometry import Pose2, first_contact, wrap_angle
 
 coord = st.floats(-100, 100, allow_nan=False)
 angle = st.floats(-10, 10, allow_nan=False)
@@ -49,14 +49,19 @@ def test_inverse_undoes_apply(a):
     assert np.allclose(back, pts, atol=1e-6)
 
 
-def test_free_travel_stops_where_the_disc_would_touch_a_point():
+def test_first_contact_is_where_and_which_point_the_disc_would_touch():
     pts = np.array([[2.0, 0.0], [1.0, 0.5], [-1.0, 0.0]])
     # Straight at the point 2 m ahead: the disc touches it after 2 - r.
-    assert free_travel_m(pts[:1], (1.0, 0.0), 0.3) == pytest.approx(1.7)
+    travel, i = first_contact(pts[:1], (1.0, 0.0), 0.3)
+    assert travel == pytest.approx(1.7) and i == 0
     # A point 0.5 m to the side is passed by a 0.3 m disc, touched by a 0.6 m one.
-    assert free_travel_m(pts[1:2], (1.0, 0.0), 0.3) == math.inf
-    assert free_travel_m(pts[1:2], (1.0, 0.0), 0.6) == pytest.approx(1.0 - math.sqrt(0.36 - 0.25))
+    assert first_contact(pts[1:2], (1.0, 0.0), 0.3) == (math.inf, -1)
+    assert first_contact(pts[1:2], (1.0, 0.0), 0.6)[0] == pytest.approx(1.0 - math.sqrt(0.36 - 0.25))
     # Behind does not count; the direction's length does not matter.
-    assert free_travel_m(pts[2:], (1.0, 0.0), 0.3) == math.inf
-    assert free_travel_m(pts, (5.0, 0.0), 0.3) == pytest.approx(1.7)
-    assert free_travel_m(pts, (0.0, 0.0), 0.3) == math.inf
+    assert first_contact(pts[2:], (1.0, 0.0), 0.3) == (math.inf, -1)
+    travel, i = first_contact(pts, (5.0, 0.0), 0.3)
+    assert travel == pytest.approx(1.7) and i == 0
+    assert first_contact(pts, (0.0, 0.0), 0.3) == (math.inf, -1)
+    # Of several in the way, the first touched: the side point for the wide disc.
+    travel, i = first_contact(pts, (1.0, 0.0), 0.6)
+    assert travel == pytest.approx(1.0 - math.sqrt(0.36 - 0.25)) and i == 1

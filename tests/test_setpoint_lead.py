@@ -7,7 +7,7 @@ import pytest
 
 from companion.core.geometry import Pose2
 from companion.core.messages import Setpoint
-from companion.core.setpoint_lead import LeadParams, limit_lead, remembered_blocker
+from companion.core.setpoint_lead import LeadParams, limit_lead, limit_lead_facing_memory
 
 BODY_M = 0.25
 PARAMS = LeadParams(max_lead_m=1.5, contact_margin_m=0.05, stop_margin_m=0.1, speed_margin_s=0.0)  # touching at 0.3 m
@@ -104,9 +104,17 @@ def test_held_by_a_remembered_return_alone_the_vehicle_is_told_to_look_at_it():
     beside = np.array([[0.2, 0.33], [0.0, -1.0], [1.0, 0.9]])
     held = limit_lead(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, remembered_xy=beside)
     assert lead_of(held, pose) == pytest.approx(0.0)
-    blocker = remembered_blocker(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, beside)
+    facing, blocker = limit_lead_facing_memory(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, beside)
     assert blocker is not None and np.allclose(blocker, [0.2, 0.33])
-    assert remembered_blocker(sp, pose, (0.0, 0.0), beside, BODY_M, params, NO_RETURNS) is None
-    assert remembered_blocker(sp, pose, (0.0, 0.0), wall(0.35), BODY_M, params, beside) is None
+    assert (facing.x_m, facing.y_m) == (held.x_m, held.y_m)
+    assert facing.yaw_rad == pytest.approx(math.atan2(0.33, 0.2))  # turned to face it
+
+    def blocker_of(setpoint: Setpoint, returns: np.ndarray, remembered: np.ndarray) -> np.ndarray | None:
+        limited, blocker = limit_lead_facing_memory(setpoint, pose, (0.0, 0.0), returns, BODY_M, params, remembered)
+        assert blocker is not None or limited.yaw_rad == setpoint.yaw_rad  # the yaw kept
+        return blocker
+
+    assert blocker_of(sp, beside, NO_RETURNS) is None
+    assert blocker_of(sp, wall(0.35), beside) is None
     # Away from it the memory does not hold the vehicle: nothing to look at.
-    assert remembered_blocker(Setpoint(-3.0, 0.0, 0.0), pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, beside) is None
+    assert blocker_of(Setpoint(-3.0, 0.0, 0.0), NO_RETURNS, beside) is None

@@ -24,7 +24,7 @@ from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
-from companion.core.setpoint_lead import LeadParams, limit_lead, remembered_blocker
+from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
 
 
 @dataclass(frozen=True, slots=True)
@@ -386,16 +386,13 @@ class Explorer:
         split = returns.shape[0] - self._recent.newest_count()
         newest, remembered = returns[split:], returns[:split]
         vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
-        velocity = (float(vx), float(vy))
         radius = self.params.planner.body_radius_m
-        lead = self.params.lead
-        limited = limit_lead(sp, pose, velocity, newest, radius, lead, remembered)
-        blocker = remembered_blocker(sp, pose, velocity, newest, radius, lead, remembered)
-        if blocker is None:
-            return limited
-        self.looks_at_remembered += 1
-        yaw = math.atan2(blocker[1] - pose.y_m, blocker[0] - pose.x_m)
-        return Setpoint(limited.x_m, limited.y_m, yaw)
+        limited, blocker = limit_lead_facing_memory(
+            sp, pose, (float(vx), float(vy)), newest, radius, self.params.lead, remembered
+        )
+        if blocker is not None:
+            self.looks_at_remembered += 1
+        return limited
 
     def _recent_obstacles(self, pose_at_scan: Pose2, newest: DepthScan) -> FloatArray:
         """The recent returns (odometry frame), less the earlier scans' inside the newest one's

@@ -141,9 +141,3 @@ def first_contact(points_xy: FloatArray, direction_xy: tuple[float, float], radi
     travel = np.where(hit, along - np.sqrt(np.maximum(radius_m**2 - across**2, 0.0)), np.inf)
     i = int(np.argmin(travel))
     return max(0.0, float(travel[i])), i
-
-
-def free_travel_m(points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float) -> float:
-    """How far a disc of ``radius_m`` at the origin can move along ``direction_xy`` before it
-    touches one of the points (inf when none lies in its way)."""
-    return first_contact(points_xy, direction_xy, radius_m)[0]

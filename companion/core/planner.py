@@ -489,11 +489,11 @@ class FrontierPlanner:
                 # keyframe's own view again: nothing to learn (a vertex near the origin has its
                 # ray goal there). Flown to, it was looked at and closed, the arrival's view
                 # found it again as a new vertex, and apartment 5 turned on one spot for 20 min.
-                fresh = (np.hypot(pts[:, 0], pts[:, 1]) > p.goal_reached_m) | (np.abs(look_local) >= p.same_view_rad)
-                goals.append(pose.apply(pts[fresh]))
-                looks.append(wrap_angles(look_local[fresh] + pose.yaw_rad))
-                key_ids.append(np.full(int(fresh.sum()), k, dtype=np.intp))
-                key_idx.append(idx[fresh])
+                new_view = (np.hypot(pts[:, 0], pts[:, 1]) > p.goal_reached_m) | (np.abs(look_local) >= p.same_view_rad)
+                goals.append(pose.apply(pts[new_view]))
+                looks.append(wrap_angles(look_local[new_view] + pose.yaw_rad))
+                key_ids.append(np.full(int(new_view.sum()), k, dtype=np.intp))
+                key_idx.append(idx[new_view])
         if not goals:
             return []
         g = np.vstack(goals)

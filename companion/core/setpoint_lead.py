@@ -9,7 +9,7 @@ seen obstacle, whatever the planner asks next.
 
 Returns remembered from earlier scans (out of view now) hold the vehicle too, with more berth. When
 they alone hold it where the newest scan would let it go, the vehicle turns to look at the one in its
-way (:func:`remembered_blocker`): the sensor then sees it again, or sees through it, and the scan
+way (:func:`limit_lead_facing_memory`): the sensor then sees it again, or sees through it, and the scan
 decides. Forgetting it instead (an age limit) let a vehicle that had hovered beside a thin wall's
 end turn onto it.
 """
@@ -67,16 +67,11 @@ def limit_lead(
     not shrink the berth to nothing (office 2 flew into a wall that way). The faster it moves,
     the wider a berth its line must give a return.
     """
-    dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
-    dist = math.hypot(dx, dy)
     lead, _ = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy)
-    if lead >= dist:
-        return setpoint
-    k = lead / dist
-    return Setpoint(pose.x_m + k * dx, pose.y_m + k * dy, setpoint.yaw_rad)
+    return _within(setpoint, pose, lead)
 
 
-def remembered_blocker(
+def limit_lead_facing_memory(
     setpoint: Setpoint,
     pose: Pose2,
     velocity_xy: tuple[float, float],
@@ -84,14 +79,29 @@ def remembered_blocker(
     body_radius_m: float,
     params: LeadParams,
     remembered_xy: FloatArray,
-) -> FloatArray | None:
-    """The remembered return to look at, when remembered returns alone hold the vehicle (see
-    :class:`LeadParams`): the one its way touches first. None when nothing remembered holds it."""
+) -> tuple[Setpoint, FloatArray | None]:
+    """:func:`limit_lead`; but when remembered returns alone hold the vehicle (see
+    :class:`LeadParams`), the setpoint faces the one its way touches first, so the sensor sees it
+    again. Returns the setpoint and that return (None when nothing remembered holds it)."""
     held, blocker = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy)
+    limited = _within(setpoint, pose, held)
     if blocker is None or held > params.hold_m:
-        return None
+        return limited, None
     free, _ = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, None)
-    return blocker if free >= params.look_lead_m else None
+    if free < params.look_lead_m:
+        return limited, None
+    yaw = math.atan2(float(blocker[1]) - pose.y_m, float(blocker[0]) - pose.x_m)
+    return Setpoint(limited.x_m, limited.y_m, yaw), blocker
+
+
+def _within(setpoint: Setpoint, pose: Pose2, lead_m: float) -> Setpoint:
+    """The setpoint moved along its line from the vehicle to at most ``lead_m`` away (yaw kept)."""
+    dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
+    dist = math.hypot(dx, dy)
+    if lead_m >= dist:
+        return setpoint
+    k = lead_m / dist
+    return Setpoint(pose.x_m + k * dx, pose.y_m + k * dy, setpoint.yaw_rad)
 
 
 def _lead_m(
