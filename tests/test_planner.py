@@ -43,6 +43,23 @@ def test_a_cooling_goal_is_tried_again_from_its_own_keyframes_origin():
     assert not planner.attempts
 
 
+def test_a_vehicle_just_behind_its_keyframes_apex_still_takes_the_keyframes_frontiers():
+    """Flown back to a keyframe, the vehicle stops within reach of its origin, maybe a little
+    behind it, outside the view's wedge. The disc its body covers is free by its presence, so a
+    path from there counts as in known free space from that disc's edge on: otherwise every path
+    left the view at once, and each frontier counted failed tries until all were set aside (the
+    rotunda, seed 14: at 10 s, coverage 0.10)."""
+    ranges = 2.0 / np.cos(BEARINGS)  # a wall across the way, 2 m ahead: only the sides are open
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, ranges, 5.0)))
+    assert targetable_indices(kf, PlannerParams().min_frontier_size_m).size
+    for behind_m in (0.0, 0.1, 0.2):
+        planner = FrontierPlanner()
+        decision = planner.plan(m, kf.keyframe_id, Pose2(-behind_m, 0.02, math.pi), 100.0)
+        assert decision.mode is Mode.EXPLORING and decision.goal is not None, behind_m
+        assert not planner.attempts
+
+
 def test_a_frontier_seen_through_a_door_too_narrow_to_fly_is_approached_not_just_failed():
     """From its keyframe's origin nothing behind a 0.34 m gap is in reach: that counts a failed
     try, and the vehicle then goes as near as the free space leads (in front of the gap) to look

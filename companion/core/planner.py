@@ -622,9 +622,12 @@ class FrontierPlanner:
                 if view.holds(goals[i : i + 1])[0]:
                     return int(i)
                 continue
-            # The vehicle's own spot is free by its presence (it may sit on a polygon's corner, as
-            # at a keyframe's origin): the part that must lie in known free space starts a little along.
-            lead = start + delta[i] * min(0.05 / float(length[i]), 0.5)
+            # The disc the vehicle's body covers is free by its presence: the part that must lie
+            # in known free space starts at its edge. The vehicle may sit on a polygon's corner
+            # (a keyframe's origin) or just behind it: 0.1 m behind a view's apex, every path out
+            # of the vehicle's spot left the view at once, and rotunda seed 14 set every frontier
+            # aside from there within 10 s (when the part began 5 cm along).
+            lead = start + delta[i] * min(self.params.body_radius_m / float(length[i]), 0.5)
             if view.covers(shapely.LineString([lead, goals[i]])):
                 return int(i)
         return None
