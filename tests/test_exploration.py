@@ -11,7 +11,7 @@ from companion.cli import main
 from companion.config import Config
 from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.fov_polygon import PolygonParams, VertexKind
-from companion.core.geometry import Pose2
+from companion.core.geometry import Pose2, wrap_angle
 from companion.core.local_map import MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Mode, PlannerParams
@@ -21,8 +21,15 @@ from sitl.runner import run_exploration
 from sitl.simulation import SimParams
 from sitl.slam import SlamParams
 from sitl.world import load_world
+from tests.conftest import square, write_map
 
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
+
+
+def explorer(**params) -> Explorer:
+    """An explorer that plans from its first view at once: the synthetic sequences below are
+    about what comes after the turn in place at the start (which has tests of its own)."""
+    return Explorer(ExplorerParams(look_around_rad=0.0, **params))
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -87,7 +94,7 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
 
 def test_setpoints_never_lead_the_vehicle_by_more_than_the_configured_distance():
     """A frontier 4 m ahead must not become a 4 m setpoint: an autopilot would fly it at cruise speed."""
-    ex = Explorer(ExplorerParams(lead=LeadParams(max_lead_m=1.0)))
+    ex = explorer(lead=LeadParams(max_lead_m=1.0))
     ranges = np.full(64, 5.0)  # open space ahead: frontiers at 5 m
     leads = []
     for i in range(30):
@@ -104,11 +111,9 @@ def test_a_frontier_the_newest_scan_sees_as_wall_is_closed_without_flying_to_it(
     scan returns from the wall right at the middle vertices: they are closed and the goal moves
     on; the arc's ends, beside the wall's unseen part, stay open."""
     wall_x = 5.0
-    ex = Explorer(
-        ExplorerParams(
-            polygon=PolygonParams(side_frontier_spacing_m=0.0),  # the arc only
-            planner=PlannerParams(close_on_surface=True),  # opt-in (off by default)
-        )
+    ex = explorer(
+        polygon=PolygonParams(side_frontier_spacing_m=0.0),  # the arc only
+        planner=PlannerParams(close_on_surface=True),  # opt-in (off by default)
     )
     first = DepthScan(0.0, BEARINGS, np.minimum(wall_x / np.cos(BEARINGS), 5.0), 5.0)
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), first)
@@ -130,7 +135,7 @@ def test_a_frontier_the_newest_scan_sees_as_wall_is_closed_without_flying_to_it(
 
 
 def test_explorer_turns_a_loop_closure_into_a_graph_edge():
-    ex = Explorer()
+    ex = explorer()
     scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
     for i in range(6):
         t = float(i)
@@ -160,7 +165,7 @@ def test_a_scan_newer_than_the_odometry_waits_for_the_pose_at_its_own_stamp():
     moment: placed by the older pose, a turning vehicle's polygon swings by metres at its far
     end. The explorer holds it until odometry reaches its stamp; a scan far ahead (another
     clock) is not held for ever."""
-    ex = Explorer()
+    ex = explorer()
     open_scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), open_scan(0.1))
     assert len(ex.map) == 0  # no pose for t = 0.1 yet
@@ -168,7 +173,7 @@ def test_a_scan_newer_than_the_odometry_waits_for_the_pose_at_its_own_stamp():
     result = ex.step(Odometry(0.1, at_scan))
     assert result.keyframe_added and len(ex.map) == 1
     assert ex.map.keyframes[0].odom_pose == at_scan
-    other_clock = Explorer()
+    other_clock = explorer()
     result = other_clock.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), open_scan(3.0))
     assert result.keyframe_added and other_clock.map.keyframes[0].odom_pose == Pose2(0.0, 0.0, 0.0)
 
@@ -179,7 +184,7 @@ def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
     recognises that place and measures it 0.3 m to the north as well. Flying back through known
     space (where the thesis teleported), the vehicle is then placed in that keyframe's frame by
     the measurement; exploring, it keeps its newest keyframe's frame."""
-    ex = Explorer()
+    ex = explorer()
     scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
     for i in range(6):
         ex.step(Odometry(float(i), Pose2(1.2 * i, 0.0, 0.0)), scan(float(i)))
@@ -207,7 +212,7 @@ def test_stalled_on_a_route_a_loop_closure_with_no_keyframe_near_its_moment_asks
     """A vehicle stalled on a route takes no view, so after a few seconds no loop closure finds a
     keyframe near its current moment to join, and none relocalises it. The first such closure
     makes the next scan a keyframe, hovering or not; the closure after that relocalises."""
-    ex = Explorer()
+    ex = explorer()
     scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
     for i in range(6):
         ex.step(Odometry(float(i), Pose2(1.2 * i, 0.0, 0.0)), scan(float(i)))
@@ -229,7 +234,7 @@ def test_a_loop_closure_joins_the_keyframe_whose_view_holds_the_moment_not_merel
     """The vehicle flies east, then turns north at x = 3.6 m. A moment just before the turn lies
     behind the north-facing keyframe's view (which is nearer in time) but inside the east-facing
     keyframe's view: the closure's edge must join the keyframe that saw that place."""
-    ex = Explorer()
+    ex = explorer()
     scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
     poses = [(0.0, Pose2(0.0, 0.0, 0.0)), (1.0, Pose2(1.2, 0.0, 0.0)), (2.0, Pose2(2.4, 0.0, 0.0))]
     poses += [(2.9, Pose2(3.5, 0.0, 0.0)), (3.0, Pose2(3.6, 0.0, math.pi / 2))]
@@ -249,7 +254,7 @@ def test_a_loop_closure_joins_the_keyframe_whose_view_holds_the_moment_not_merel
 
 
 def test_estimator_reset_keeps_setpoints_continuous():
-    ex = Explorer()
+    ex = explorer()
     scan = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
     before = ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0), reset_counter=0), scan).setpoint
     # The estimator jumps by +10 m in x; the vehicle did not move.
@@ -311,7 +316,7 @@ def test_a_wall_that_left_the_field_of_view_still_bounds_the_vehicle_for_a_while
     The wall, now beside it and out of view, stays among the obstacles the setpoint's lead limit
     uses (the crash this guards against: a door jamb beside the vehicle, seen a few seconds
     earlier)."""
-    ex = Explorer()
+    ex = explorer()
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
     east = Pose2(0.0, 0.0, -0.3)  # its field of view shares no ray with the northern one
     ex.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
@@ -319,7 +324,7 @@ def test_a_wall_that_left_the_field_of_view_still_bounds_the_vehicle_for_a_while
     assert wall.shape[0] == 64
     assert np.allclose(wall[:, 1], 0.6)  # the north wall, in the odometry frame
     # Without the memory only the newest scan counts, and it saw no obstacle.
-    forgetful = Explorer(ExplorerParams(obstacle_memory_s=0.0))
+    forgetful = explorer(obstacle_memory_s=0.0)
     forgetful.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
     forgetful.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
     assert forgetful.obstacles_xy.shape[0] == 0
@@ -332,8 +337,8 @@ def test_drifting_towards_a_remembered_wall_holds_the_setpoint_short_of_it():
     the 0.05 m more a remembered return is given, less the 0.1 m stop margin).
     Without the memory the wall is out of view and the setpoint leads by well over a metre."""
 
-    def lead_m(params: ExplorerParams | None) -> float:
-        ex = Explorer(params)
+    def lead_m(**params: float) -> float:
+        ex = explorer(**params)
         ex.step(Odometry(0.0, Pose2(0.0, -0.1, math.pi / 2)), _wall_ahead_scan(0.0, 0.7))
         ex.step(Odometry(0.8, Pose2(0.0, -0.15, -0.3)))
         # The eastern view becomes a keyframe after this step's plan; the next step plans on it.
@@ -341,14 +346,14 @@ def test_drifting_towards_a_remembered_wall_holds_the_setpoint_short_of_it():
         sp = ex.step(Odometry(1.1, Pose2(0.0, 0.0, -0.3))).setpoint
         return math.hypot(sp.x_m, sp.y_m)
 
-    assert lead_m(None) == pytest.approx(0.6 - (0.3 + 0.15 * 0.5 + 0.05) - 0.1, abs=0.02)
-    assert lead_m(ExplorerParams(obstacle_memory_s=0.0)) > 1.0
+    assert lead_m() == pytest.approx(0.6 - (0.3 + 0.15 * 0.5 + 0.05) - 0.1, abs=0.02)
+    assert lead_m(obstacle_memory_s=0.0) > 1.0
 
 
 def test_remembered_returns_go_when_the_sensor_sees_through_them_or_after_travel():
     """An old return where the newest scan sees free space is dropped (drift moved it, or it was
     never there); the rest go once the vehicle has travelled the memory's distance."""
-    ex = Explorer(ExplorerParams(obstacle_memory_m=1.5))
+    ex = explorer(obstacle_memory_m=1.5)
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), _wall_ahead_scan(0.0, 2.0))
     ex.step(Odometry(0.1, Pose2(0.0, 0.0, 0.0)), DepthScan(0.1, BEARINGS, np.full(64, 5.0), 5.0))
     assert ex.obstacles_xy.shape[0] == 0  # seen through: the same rays now reach 5 m
@@ -364,7 +369,7 @@ def test_remembered_returns_go_when_the_sensor_sees_through_them_or_after_travel
 def test_an_estimator_reset_carries_the_remembered_returns_over():
     """The estimator jumps 10 m (reset_counter changes) while the vehicle hovers: the wall it saw
     just before stays remembered, moved with the jump, not aged out as 10 m of travel."""
-    ex = Explorer()
+    ex = explorer()
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2), reset_counter=0), _wall_ahead_scan(0.0, 0.6))
     ex.step(Odometry(0.1, Pose2(10.0, 0.0, math.pi / 2), reset_counter=1))
     east = Pose2(10.0, 0.0, -0.3)  # then turned away from the wall, so no scan sees it again
@@ -380,7 +385,7 @@ def test_a_hovering_vehicle_keeps_the_wall_beside_it_and_each_return_once():
     5 s limit a vehicle that hovered beside a thin wall's end forgot it and turned onto it).
     The eastern wall, seen again and again, is held once: the newest scan supersedes what it
     sees, so the memory does not grow while the vehicle hovers."""
-    ex = Explorer()
+    ex = explorer()
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.6))
     east = Pose2(0.0, 0.0, -0.3)  # its field of view shares no ray with the northern one
     for i in range(1, 301):
@@ -396,7 +401,7 @@ def test_held_by_a_remembered_wall_alone_the_vehicle_turns_to_look_at_it():
     north, the remembered wall holds it where the newest scan alone would not: the setpoint
     stays put and faces the wall, so the next scans see whether it is still there, rather than
     the vehicle waiting on a memory that never expires or forgetting a wall beside it."""
-    ex = Explorer()
+    ex = explorer()
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, math.pi / 2)), _wall_ahead_scan(0.0, 0.4))
     east = Pose2(0.0, 0.0, -0.3)
     ex.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
@@ -408,3 +413,58 @@ def test_held_by_a_remembered_wall_alone_the_vehicle_turns_to_look_at_it():
     # Going east, away from it, the wall holds nothing: the planner's yaw stands.
     free = ex._within_lead(Setpoint(3.0, -0.5, -0.3), east, (0.0, 0.0))
     assert math.hypot(free.x_m, free.y_m) > 1.0 and free.yaw_rad == -0.3
+
+
+def _wall_to_the_east_scan(t: float, yaw_rad: float, wall_x_m: float = 0.6) -> DepthScan:
+    """From the origin, heading ``yaw_rad``: the wall x = 0.6 m, open space every other way."""
+    c = np.cos(BEARINGS + yaw_rad)
+    with np.errstate(divide="ignore"):
+        ranges = np.where(c > 1e-9, wall_x_m / c, np.inf)
+    return DepthScan(t, BEARINGS, np.where(ranges < 5.0, ranges, 5.0), 5.0)
+
+
+def test_started_facing_a_wall_the_vehicle_turns_round_in_place_before_choosing_a_frontier():
+    """A view of a wall 0.6 m ahead has no frontier: planning on it alone ends the run `complete`
+    at once. The explorer first turns a full circle in place, a quarter turn ahead at a time,
+    taking views as it turns, and plans on what they saw: the open side has frontiers."""
+    at_once = explorer()
+    at_once.step(Odometry(0.0, Pose2()), _wall_to_the_east_scan(0.0, 0.0))
+    assert at_once.step(Odometry(0.1, Pose2()), _wall_to_the_east_scan(0.1, 0.0)).mode is Mode.COMPLETE
+
+    ex = Explorer()
+    yaw, t, modes, turns = 0.0, 0.0, [], []
+    result = ex.step(Odometry(t, Pose2()), _wall_to_the_east_scan(t, yaw))
+    while t < 10.0:
+        sp = result.setpoint
+        turns.append(wrap_angle(sp.yaw_rad - yaw))
+        assert (sp.x_m, sp.y_m) == (0.0, 0.0) or result.decision.goal is not None
+        if result.decision.goal is not None:
+            break
+        modes.append(result.mode)
+        yaw = wrap_angle(yaw + max(-0.157, min(0.157, wrap_angle(sp.yaw_rad - yaw))))  # 90 deg/s
+        t = round(t + 0.1, 6)
+        result = ex.step(Odometry(t, Pose2(0.0, 0.0, yaw)), _wall_to_the_east_scan(t, yaw))
+    assert Mode.COMPLETE not in modes
+    assert turns[0] == pytest.approx(math.pi / 2)  # a quarter turn ahead, one way
+    assert result.decision.goal is not None and result.mode is Mode.EXPLORING
+    assert 2 * math.pi <= ex._looked_around_rad < 2 * math.pi + 0.2
+    assert len(ex.map) >= 10  # a view every 0.5 rad of the turn
+
+
+def test_an_autopilot_that_does_not_turn_the_vehicle_holds_the_start_for_a_bounded_time():
+    """The turn at the start is asked for `look_around_max_s` at most: a vehicle that never turns
+    (its autopilot ignores the yaw) then plans on the one view it has."""
+    ex = Explorer(ExplorerParams(look_around_max_s=5.0))
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    turning = [ex.step(Odometry(0.1 * k, Pose2()), scan(0.1 * k)).decision.goal is None for k in range(49)]
+    assert all(turning)
+    later = [ex.step(Odometry(0.1 * k, Pose2()), scan(0.1 * k)).decision.goal for k in range(50, 53)]
+    assert all(goal is not None for goal in later)
+
+
+def test_a_vehicle_started_facing_a_wall_in_a_corner_explores_the_room(tmp_path):
+    """In the simulator: started 0.5 m from two walls, facing the corner, the run covers the room
+    (with the first view alone it ended `complete` at coverage 0.003)."""
+    room = write_map(tmp_path / "corner.geojson", square(0, 0, 8, 6), [square(3.5, 2.5, 4.5, 3.5)], (0.5, 0.5), 225.0)
+    r = run_exploration(load_world(room), "polygon", seed=1, noise_scale=1.0, max_time_s=600).report
+    assert r["termination"] == "complete" and r["coverage"] >= 0.99 and r["collisions"] == 0

@@ -32,6 +32,13 @@ class ExplorerParams:
     polygon: PolygonParams = field(default_factory=PolygonParams)
     map: MapParams = field(default_factory=MapParams)
     planner: PlannerParams = field(default_factory=PlannerParams)
+    # Before the first frontier is chosen, the vehicle turns this far in place at its start
+    # (taking views as it turns): a narrow sensor sees a wedge of its surroundings, and what
+    # lies behind and beside the start borders no view's frontier. Started facing a wall 0.6 m
+    # away the first view had no frontier at all and the run ended `complete` at once (coverage
+    # 0.004); started at the end of a long thin room it never looked behind itself (0.935).
+    look_around_rad: float = 2.0 * math.pi
+    look_around_max_s: float = 20.0  # an autopilot that does not turn the vehicle: go on anyway
     keyframe_distance_m: float = 1.0
     keyframe_angle_rad: float = 0.5
     backtrack_keyframe_distance_m: float = 3.0  # fewer new views while flying through known space
@@ -176,6 +183,9 @@ class Explorer:
         self._obstacles_xy: FloatArray = np.zeros((0, 2))  # recent returns for this step, odometry frame
         self._keyframe_stamps: tuple[list[float], list[int]] = ([], [])  # sorted by stamp, for closures
         self._waiting_scan: DepthScan | None = None  # newer than the odometry so far (see step)
+        self._looked_around_rad = 0.0  # turned in place at the start so far (see look_around_rad)
+        self._looked_around = self.params.look_around_rad <= 0.0
+        self._look_from: tuple[float, Pose2] | None = None  # when and where it began (odometry frame)
 
     @property
     def mode(self) -> Mode:
@@ -204,6 +214,8 @@ class Explorer:
             hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
             decision = Decision(Mode.EXPLORING, Target(hold.x_m, hold.y_m, hold.yaw_rad))
             return StepResult(hold, Mode.EXPLORING, added, decision)
+        if self._looking_around(odom, last):
+            return self._look_around(odom, scan, added)
         vehicle = self.anchor.between(odom.pose)
         live = None
         live_view: Callable[[], shapely.Geometry] | None = None
@@ -246,6 +258,37 @@ class Explorer:
             elif self._pending_closures:
                 self._apply_pending_closures()
         return StepResult(sp, decision.mode, added, decision)
+
+    def _looking_around(self, odom: Odometry, last: Odometry | None) -> bool:
+        """Still turning in place at the start (see ``look_around_rad``)? Counts the turn made
+        (signed: it turns one way, and a hovering estimate's jitter cancels out); once done,
+        never again."""
+        p = self.params
+        if self._looked_around:
+            return False
+        if self._look_from is None:
+            self._look_from = (odom.stamp_s, odom.pose)
+        elif last is not None and odom.reset_counter == last.reset_counter:
+            self._looked_around_rad += wrap_angle(odom.pose.yaw_rad - last.pose.yaw_rad)
+        timed_out = odom.stamp_s - self._look_from[0] >= p.look_around_max_s
+        self._looked_around = self._looked_around_rad >= p.look_around_rad or timed_out
+        return not self._looked_around
+
+    def _look_around(self, odom: Odometry, scan: DepthScan | None, added: bool) -> StepResult:
+        """Turn in place at the start, aiming a quarter turn ahead of the heading, and take views
+        as it changes; the planner starts on what they saw."""
+        assert self._look_from is not None
+        if self._live is not None:
+            pose_at_scan, _, newest = self._live
+            self._obstacles_xy = self._recent_obstacles(pose_at_scan, newest)
+        if not added and scan is not None:
+            added = self._maybe_add_keyframe(scan, odom)
+        start = self._look_from[1]
+        turn = Setpoint(start.x_m, start.y_m, wrap_angle(odom.pose.yaw_rad + 0.5 * math.pi))
+        sp = self._within_lead(turn, odom.pose, self._velocity_in_frame(odom))
+        t = self.anchor.between(Pose2(sp.x_m, sp.y_m, sp.yaw_rad))
+        self._last_mode = Mode.EXPLORING
+        return StepResult(sp, Mode.EXPLORING, added, Decision(Mode.EXPLORING, Target(t.x_m, t.y_m, t.yaw_rad)))
 
     @property
     def obstacles_xy(self) -> FloatArray:
