@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 
 from companion.core.fov_polygon import VertexKind, scan_to_polygon
 from companion.core.geometry import Pose2
-from companion.core.local_map import LocalMap
+from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan
 
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
@@ -28,8 +28,9 @@ def test_a_view_surrounded_by_earlier_views_leaves_no_open_frontier():
     # Four views from one spot, each turned 90 degrees, all short of max range except the last.
     for k in range(4):
         prev = add_pose(m, Pose2(0, 0, k * math.pi / 2), prev, open_scan(3.0) if k < 3 else open_scan(5.0))
-    # Then a view from just behind that sees past the first ring in the same direction.
-    last_id, _ = add_pose(m, Pose2(-0.5, 0, 3 * math.pi / 2), prev, open_scan(3.0))
+    # Then a view from just behind, the same way as the last (which saw no wall within 5 m: it
+    # sees none either, or one of the two views would be misplaced).
+    last_id, _ = add_pose(m, Pose2(-0.5, 0, 3 * math.pi / 2), prev, open_scan(5.0))
     inner = m.keyframes[last_id]
     assert np.count_nonzero(inner.kinds == VertexKind.FRONTIER) < np.count_nonzero(
         inner.polygon.kinds == VertexKind.FRONTIER
@@ -242,3 +243,32 @@ def test_a_frontier_vertex_with_a_wall_just_beyond_it_in_another_view_closes():
     assert a.kinds[v] == VertexKind.FRONTIER
     add_pose(m, Pose2(3.5, 0.0, 0.0), (a_id, a_pose), walled)
     assert a.kinds[v] == VertexKind.FREE
+
+
+def test_a_neighbour_placed_through_a_wall_the_keyframe_saw_neither_closes_nor_is_closed():
+    """Keyframe 0 sees a wall across its way 2 m ahead; keyframe 1, by a drifted odometry edge,
+    sits 1.5 m ahead facing left, its open view reaching far through that wall. Placed so, it
+    would close keyframe 0's side frontier (the space beyond it lies inside keyframe 1's view),
+    but the wall keyframe 0 saw lies deep inside keyframe 1's free space: one of them is
+    misplaced, and they judge none of each other's frontiers. (One hop stands for the long
+    chain such drift needs: by default only neighbours six hops or more away are judged.)"""
+    wall = DepthScan(0.0, BEARINGS, 2.0 / np.cos(BEARINGS), 5.0)
+
+    def side_vertex_open(misplaced_depth_m: float) -> bool:
+        m = LocalMap(MapParams(misplaced_depth_m=misplaced_depth_m, misplaced_min_hops=1))
+        kf0 = m.add_keyframe(0.0, Pose2(), scan_to_polygon(wall))
+        vertex = int(np.argmin(np.hypot(*(kf0.polygon.vertices_xy - (1.41, 1.41)).T)))
+        assert kf0.kinds[vertex] == VertexKind.FRONTIER
+        ahead = Pose2(1.5, 0.0, math.pi / 2)
+        m.add_keyframe(1.0, ahead, scan_to_polygon(open_scan()), parent=(0, ahead))
+        return bool(kf0.kinds[vertex] == VertexKind.FRONTIER)
+
+    assert side_vertex_open(0.3)
+    assert not side_vertex_open(math.inf)  # trusted, the misplaced view closes it
+    near = LocalMap()  # one hop: trusted by default
+    kf0 = near.add_keyframe(0.0, Pose2(), scan_to_polygon(wall))
+    ahead = Pose2(1.5, 0.0, math.pi / 2)
+    near.add_keyframe(1.0, ahead, scan_to_polygon(open_scan()), parent=(0, ahead))
+    assert np.count_nonzero(kf0.kinds == VertexKind.FRONTIER) < np.count_nonzero(
+        kf0.polygon.kinds == VertexKind.FRONTIER
+    )

@@ -30,6 +30,13 @@ class MapParams:
 
     closing_offset_m: float = 0.15  # how far beyond a frontier vertex another view must reach
     closing_depth_m: float = 0.4  # and how far (or to a wall) it must reach: a sliver does not close
+    # A neighbour whose polygon, placed in a keyframe's frame, holds a wall that keyframe itself
+    # saw this deep inside its free space is misplaced (drift along a long chain of the graph):
+    # it closes none of that view's frontiers. One placed 1 m off across a door closed the
+    # door's frontiers from the corridor, and the room behind was never entered (lshape seed 3
+    # with the start turn: `complete` at coverage 0.952).
+    misplaced_depth_m: float = 0.3
+    misplaced_min_hops: int = 6  # nearer along the graph, drift is too small to place a view so far off
     wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
     # Closing against views outside the neighbourhood, reached along the pose graph: the vertex
     # must lie deeper inside the other view the longer the chain (drift accumulates along it),
@@ -153,6 +160,7 @@ class LocalMap:
         self.graph = PoseGraph()
         self.keyframes: dict[int, Keyframe] = {}
         self._neighbours: dict[int, dict[int, Pose2]] = {}
+        self._hops: dict[int, dict[int, int]] = {}  # hops along the path each neighbour was placed by
         self._views: dict[int, LocalView] = {}
         self._next_id = 0
         self._radii_m: list[float] = []
@@ -177,6 +185,7 @@ class LocalMap:
         self._radii_m.append(kf.radius_m)  # by id: ids count up from 0
         self.graph.add_keyframe(kf_id)
         self._neighbours[kf_id] = {}
+        self._hops[kf_id] = {}
         if parent is not None:
             self.graph.add_edge(parent[0], kf_id, parent[1], EdgeType.ODOMETRY)
         self._integrate(kf_id)
@@ -316,7 +325,7 @@ class LocalMap:
 
     # -- internals ---------------------------------------------------------------------------
 
-    def _find_neighbourhood(self, kf_id: int) -> dict[int, Pose2]:
+    def _find_neighbourhood(self, kf_id: int) -> dict[int, tuple[Pose2, int]]:
         kf = self.keyframes[kf_id]
         shape = kf.polygon.shape
 
@@ -341,15 +350,17 @@ class LocalMap:
                 out[rest] = shapely.intersects(shape, move_each([poses[i] for i in rest], shapes))
             return out
 
-        return {v.keyframe_id: v.pose_in_start for v in self.graph.walk_levels(kf_id, overlaps)[1:]}
+        return {v.keyframe_id: (v.pose_in_start, v.hops) for v in self.graph.walk_levels(kf_id, overlaps)[1:]}
 
     def _integrate(self, kf_id: int) -> None:
         """(Re)compute a keyframe's neighbourhood, then close the frontiers it shares."""
-        nbrs = self._find_neighbourhood(kf_id)
-        self._neighbours[kf_id] = nbrs
+        found = self._find_neighbourhood(kf_id)
+        self._neighbours[kf_id] = {k: pose for k, (pose, _) in found.items()}
+        self._hops[kf_id] = {k: hops for k, (_, hops) in found.items()}
         self._views.pop(kf_id, None)
-        for other_id, pose in nbrs.items():
+        for other_id, (pose, hops) in found.items():
             self._neighbours[other_id][kf_id] = pose.inverse()
+            self._hops[other_id][kf_id] = hops
             self._views.pop(other_id, None)
         view = self._build_view(kf_id)
         self._close_at_walls(kf_id, view)
@@ -384,6 +395,16 @@ class LocalMap:
             deep = beyond(p.closing_depth_m)
             check = np.flatnonzero(seen)
             deep_seen = view.holds(deep[check])
+            misplaced = self._misplaced(view)
+            if misplaced.any():  # neither closed nor closing: held by the other views alone
+                trusted = view.shapes[~misplaced][:, None]
+                owner = np.repeat(np.arange(len(kfs)), [i.size for i in idx])
+                held = ~misplaced[owner[check]]
+                held &= shapely.contains_xy(trusted, near[None, check, 0], near[None, check, 1]).any(axis=0)
+                deep_seen &= shapely.contains_xy(trusted, deep[None, check, 0], deep[None, check, 1]).any(axis=0)
+                seen[check[~held]] = False
+                check = check[held]
+                deep_seen = deep_seen[held]
             shallow = check[~deep_seen]
             if shallow.size and not view.obstacles.is_empty:
                 walled = shapely.intersects(
@@ -393,6 +414,43 @@ class LocalMap:
             else:
                 seen[shallow] = False
         _free_where(kfs, idx, seen)
+
+    def _misplaced(self, view: LocalView) -> NDArray[np.bool_]:
+        """Which of the view's keyframes (``view.poses`` order; never its own) disagree with its
+        own keyframe by more than ``misplaced_depth_m``: the own keyframe's walls (ends and
+        midpoints) that deep inside the other's polygon, or the other's walls inside the own
+        one's. Returns are exact in their own keyframe's frame; placed right, one view's walls
+        lie on or beyond another's edge. Placed by a drifted chain of the graph, they do not."""
+        n = len(view.shapes)
+        out = np.zeros(n, dtype=bool)
+        hops = self._hops[view.keyframe_id]
+        far: NDArray[np.bool_] = np.array([hops.get(k, 0) >= self.params.misplaced_min_hops for k in view.poses])
+        if not far.any():
+            return out
+        tol = self.params.misplaced_depth_m
+
+        def probes(walls: FloatArray) -> FloatArray:
+            return np.concatenate((walls[:, 0], walls[:, 1], walls.mean(axis=1)))
+
+        own = self.keyframes[view.keyframe_id].walls
+        if own.shape[0]:
+            pts = probes(own)
+            inside = shapely.contains_xy(view.shapes[1:, None], pts[None, :, 0], pts[None, :, 1])
+            rows, cols = np.nonzero(inside)
+            if rows.size:
+                depth = shapely.distance(shapely.boundary(view.shapes[1:][rows]), shapely.points(pts[cols]))
+                out[1 + np.unique(rows[depth > tol])] = True
+        counts = np.array([self.keyframes[k].walls.shape[0] for k in view.poses])
+        if counts[1:].sum():
+            theirs = view.walls_xy[counts[0] :]
+            owner = np.repeat(np.arange(1, n), counts[1:])
+            pts, who = probes(theirs), np.tile(owner, 3)
+            inside = shapely.contains_xy(view.shapes[0], pts[:, 0], pts[:, 1])
+            if inside.any():
+                depth = shapely.distance(shapely.boundary(view.shapes[0]), shapely.points(pts[inside]))
+                out[np.unique(who[inside][depth > tol])] = True
+        misplaced: NDArray[np.bool_] = out & far
+        return misplaced
 
     def _close_at_walls(self, kf_id: int, view: LocalView) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
