@@ -31,8 +31,9 @@ class MapParams:
     closing_offset_m: float = 0.15  # how far beyond a frontier vertex another view must reach
     closing_depth_m: float = 0.4  # and how far (or to a wall) it must reach: a sliver does not close
     # A neighbour whose polygon, placed in a keyframe's frame, holds a wall that keyframe itself
-    # saw this deep inside its free space is misplaced (drift along a long chain of the graph):
-    # it closes none of that view's frontiers. One placed 1 m off across a door closed the
+    # saw this deep inside its free space, or whose walls lie so deep in the keyframe's, is
+    # misplaced (drift along a long chain of the graph): in that keyframe's view it neither
+    # closes frontiers nor has its own closed. One placed 1 m off across a door closed the
     # door's frontiers from the corridor, and the room behind was never entered (lshape seed 3
     # with the start turn: `complete` at coverage 0.952).
     misplaced_depth_m: float = 0.3
@@ -416,16 +417,16 @@ class LocalMap:
         _free_where(kfs, idx, seen)
 
     def _misplaced(self, view: LocalView) -> NDArray[np.bool_]:
-        """Which of the view's keyframes (``view.poses`` order; never its own) disagree with its
-        own keyframe by more than ``misplaced_depth_m``: the own keyframe's walls (ends and
-        midpoints) that deep inside the other's polygon, or the other's walls inside the own
-        one's. Returns are exact in their own keyframe's frame; placed right, one view's walls
-        lie on or beyond another's edge. Placed by a drifted chain of the graph, they do not."""
-        n = len(view.shapes)
-        out = np.zeros(n, dtype=bool)
+        """Which of the view's keyframes (``view.poses`` order; never its own) were placed by a
+        path of ``misplaced_min_hops`` or more and disagree with its own keyframe by more than
+        ``misplaced_depth_m``: the own keyframe's walls (ends and midpoints) that deep inside the
+        other's polygon, or the other's walls inside the own one's. Returns are exact in their
+        own keyframe's frame; placed right, one view's walls lie on or beyond another's edge.
+        Placed by a drifted chain of the graph, they do not."""
         hops = self._hops[view.keyframe_id]
-        far: NDArray[np.bool_] = np.array([hops.get(k, 0) >= self.params.misplaced_min_hops for k in view.poses])
-        if not far.any():
+        far = np.flatnonzero([hops.get(k, 0) >= self.params.misplaced_min_hops for k in view.poses])
+        out = np.zeros(len(view.shapes), dtype=bool)
+        if far.size == 0:
             return out
         tol = self.params.misplaced_depth_m
 
@@ -435,22 +436,19 @@ class LocalMap:
         own = self.keyframes[view.keyframe_id].walls
         if own.shape[0]:
             pts = probes(own)
-            inside = shapely.contains_xy(view.shapes[1:, None], pts[None, :, 0], pts[None, :, 1])
-            rows, cols = np.nonzero(inside)
-            if rows.size:
-                depth = shapely.distance(shapely.boundary(view.shapes[1:][rows]), shapely.points(pts[cols]))
-                out[1 + np.unique(rows[depth > tol])] = True
-        counts = np.array([self.keyframes[k].walls.shape[0] for k in view.poses])
-        if counts[1:].sum():
-            theirs = view.walls_xy[counts[0] :]
-            owner = np.repeat(np.arange(1, n), counts[1:])
-            pts, who = probes(theirs), np.tile(owner, 3)
+            rows, cols = np.nonzero(shapely.contains_xy(view.shapes[far, None], pts[None, :, 0], pts[None, :, 1]))
+            depth = shapely.distance(shapely.boundary(view.shapes[far[rows]]), shapely.points(pts[cols]))
+            out[far[rows[depth > tol]]] = True
+        ids = list(view.poses)
+        theirs = [self.keyframes[ids[i]].walls for i in far]
+        if any(w.shape[0] for w in theirs):
+            frames = [view.poses[ids[i]] for i in far]
+            walls = apply_grouped(frames, [w.reshape(-1, 2) for w in theirs]).reshape(-1, 2, 2)
+            pts, who = probes(walls), np.tile(np.repeat(far, [w.shape[0] for w in theirs]), 3)
             inside = shapely.contains_xy(view.shapes[0], pts[:, 0], pts[:, 1])
-            if inside.any():
-                depth = shapely.distance(shapely.boundary(view.shapes[0]), shapely.points(pts[inside]))
-                out[np.unique(who[inside][depth > tol])] = True
-        misplaced: NDArray[np.bool_] = out & far
-        return misplaced
+            depth = shapely.distance(shapely.boundary(view.shapes[0]), shapely.points(pts[inside]))
+            out[who[inside][depth > tol]] = True
+        return out
 
     def _close_at_walls(self, kf_id: int, view: LocalView) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
