@@ -214,8 +214,7 @@ class Explorer:
             hold = Setpoint(odom.pose.x_m, odom.pose.y_m, odom.pose.yaw_rad)
             decision = Decision(Mode.EXPLORING, Target(hold.x_m, hold.y_m, hold.yaw_rad))
             return StepResult(hold, Mode.EXPLORING, added, decision)
-        if self._looking_around(odom, last):
-            return self._look_around(odom, scan, added)
+        looking_around = self._looking_around(odom, last)
         vehicle = self.anchor.between(odom.pose)
         live = None
         live_view: Callable[[], shapely.Geometry] | None = None
@@ -235,9 +234,12 @@ class Explorer:
                 return on_scanned_surface(newest, scan_pose, points_xy, tol_m, margin)
 
         velocity = self._velocity_in_frame(odom)
-        decision = self.planner.plan(
-            self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view, live_surface
-        )
+        if looking_around:
+            decision = self._look_around(odom)
+        else:
+            decision = self.planner.plan(
+                self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view, live_surface
+            )
         t = decision.target  # in the current keyframe's frame, before any relocalisation
         x, y = self.anchor.apply_point(t.x_m, t.y_m)
         sp = Setpoint(x, y, wrap_angle(t.yaw_rad + self.anchor.yaw_rad))
@@ -274,21 +276,13 @@ class Explorer:
         self._looked_around = self._looked_around_rad >= p.look_around_rad or timed_out
         return not self._looked_around
 
-    def _look_around(self, odom: Odometry, scan: DepthScan | None, added: bool) -> StepResult:
-        """Turn in place at the start, aiming a quarter turn ahead of the heading, and take views
-        as it changes; the planner starts on what they saw."""
+    def _look_around(self, odom: Odometry) -> Decision:
+        """The turn in place at the start, in place of the planner's decision: the start's
+        position, the heading a quarter turn ahead (views are taken as it changes)."""
         assert self._look_from is not None
-        if self._live is not None:
-            pose_at_scan, _, newest = self._live
-            self._obstacles_xy = self._recent_obstacles(pose_at_scan, newest)
-        if not added and scan is not None:
-            added = self._maybe_add_keyframe(scan, odom)
         start = self._look_from[1]
-        turn = Setpoint(start.x_m, start.y_m, wrap_angle(odom.pose.yaw_rad + 0.5 * math.pi))
-        sp = self._within_lead(turn, odom.pose, self._velocity_in_frame(odom))
-        t = self.anchor.between(Pose2(sp.x_m, sp.y_m, sp.yaw_rad))
-        self._last_mode = Mode.EXPLORING
-        return StepResult(sp, Mode.EXPLORING, added, Decision(Mode.EXPLORING, Target(t.x_m, t.y_m, t.yaw_rad)))
+        turn = self.anchor.between(Pose2(start.x_m, start.y_m, odom.pose.yaw_rad + 0.5 * math.pi))
+        return Decision(Mode.EXPLORING, Target(turn.x_m, turn.y_m, turn.yaw_rad))
 
     @property
     def obstacles_xy(self) -> FloatArray:

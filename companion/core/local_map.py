@@ -143,13 +143,15 @@ class LocalView:
                 return True
         return bool(self.grown.covers(geometry))
 
-    def holds(self, points_xy: FloatArray) -> NDArray[np.bool_]:
-        """Which points lie inside one of the neighbourhood's polygons (inside the grown one)."""
+    def holds(self, points_xy: FloatArray, among: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
+        """Which points lie inside one of the neighbourhood's polygons (inside the grown one), or
+        only of those ``among`` marks (one flag per polygon, in ``poses`` order)."""
         if points_xy.shape[0] == 0:
             return np.zeros(0, dtype=bool)
-        if self._grown is not None:
+        if among is None and self._grown is not None:
             return np.asarray(shapely.contains_xy(self._grown, points_xy[:, 0], points_xy[:, 1]), dtype=bool)
-        inside = shapely.contains_xy(self.shapes[:, None], points_xy[None, :, 0], points_xy[None, :, 1])
+        shapes = self.shapes if among is None else self.shapes[among]
+        inside = shapely.contains_xy(shapes[:, None], points_xy[None, :, 0], points_xy[None, :, 1])
         return np.asarray(inside.any(axis=0), dtype=bool)
 
 
@@ -398,11 +400,9 @@ class LocalMap:
             deep_seen = view.holds(deep[check])
             misplaced = self._misplaced(view)
             if misplaced.any():  # neither closed nor closing: held by the other views alone
-                trusted = view.shapes[~misplaced][:, None]
                 owner = np.repeat(np.arange(len(kfs)), [i.size for i in idx])
-                held = ~misplaced[owner[check]]
-                held &= shapely.contains_xy(trusted, near[None, check, 0], near[None, check, 1]).any(axis=0)
-                deep_seen &= shapely.contains_xy(trusted, deep[None, check, 0], deep[None, check, 1]).any(axis=0)
+                held = ~misplaced[owner[check]] & view.holds(near[check], among=~misplaced)
+                deep_seen &= view.holds(deep[check], among=~misplaced)
                 seen[check[~held]] = False
                 check = check[held]
                 deep_seen = deep_seen[held]

@@ -164,6 +164,17 @@ class _Leg:
     ends_short: bool = False  # snapped to free space short of the keyframe (taken near a wall)
 
 
+@dataclass(frozen=True, slots=True)
+class _Replans:
+    """How often the leg ``frame_id`` -> ``keyframe_id`` was planned again from one spot."""
+
+    frame_id: int
+    keyframe_id: int
+    x_m: float
+    y_m: float
+    count: int
+
+
 @dataclass(slots=True)
 class FrontierPlanner:
     """Stateful goal selection; pure: every input comes in through :meth:`plan`."""
@@ -183,7 +194,7 @@ class FrontierPlanner:
     _progress_target: int | None = None
     _progress_s: float = 0.0
     _leg: _Leg | None = None
-    _replans: tuple[int, int, float, float, int] | None = None  # frame, keyframe, x, y, count
+    _replans: _Replans | None = None
     _tried_in_vain: int | None = None  # keyframe whose frontiers were last tried from it in vain
     _arrived_at: int | None = None  # route keyframe last arrived at (its origin, or its leg's end)
     _cooling: dict[FrontierKey, float] = field(default_factory=dict)  # dropped goal -> until when
@@ -859,11 +870,11 @@ class FrontierPlanner:
         r = self._replans
         same = (
             r is not None
-            and (r[0], r[1]) == (frame_id, keyframe_id)
-            and math.hypot(float(here[0]) - r[2], float(here[1]) - r[3]) <= self.params.goal_reached_m
+            and (r.frame_id, r.keyframe_id) == (frame_id, keyframe_id)
+            and math.hypot(float(here[0]) - r.x_m, float(here[1]) - r.y_m) <= self.params.goal_reached_m
         )
-        count = r[4] + 1 if same and r is not None else 1
-        self._replans = (frame_id, keyframe_id, float(here[0]), float(here[1]), count)
+        count = r.count + 1 if same and r is not None else 1
+        self._replans = _Replans(frame_id, keyframe_id, float(here[0]), float(here[1]), count)
         return count <= self.params.leg_replans
 
     def _reached(self, point: FloatArray, here: FloatArray, radius_m: float) -> bool:
