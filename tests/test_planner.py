@@ -318,3 +318,75 @@ def test_a_leg_blocked_when_faced_is_planned_again_only_so_often_from_one_spot()
     assert not planner._may_replan(7, 5, here)  # the third time from the same spot: blocked
     assert planner._may_replan(7, 5, here + 1.0)  # moved on
     assert planner._may_replan(7, 4, here + 1.0)  # another keyframe
+
+
+def _closet_map() -> tuple[LocalMap, dict[str, int]]:
+    """A room (x < 0) and a 1.35 m closet (x > 0) joined by a 0.8 m door in the wall x = 0
+    (jambs at y = -0.5 and y = 0.3); keyframes taken on the way in, the last in the door's
+    mouth looking out. Returns the map and its keyframe ids by name."""
+    from sitl.depth_sensor import cast_rays
+
+    walls = [
+        ((-4.0, -2.0), (0.0, -2.0)),
+        ((0.0, -2.0), (0.0, -0.5)),
+        ((0.0, -0.675), (1.35, -0.675)),
+        ((1.35, -0.675), (1.35, 0.675)),
+        ((1.35, 0.675), (0.0, 0.675)),
+        ((0.0, 0.3), (0.0, 2.0)),
+        ((0.0, 2.0), (-4.0, 2.0)),
+        ((-4.0, 2.0), (-4.0, -2.0)),
+    ]
+    walls_xy = np.array(walls, dtype=np.float64)
+    bearings = np.linspace(-math.pi / 4, math.pi / 4, 160)
+    m = LocalMap()
+    ids: dict[str, int] = {}
+    prev: tuple[int, Pose2] | None = None
+    for name, pose in (
+        ("outside", Pose2(-0.3, 0.4, -0.4)),  # behind the upper jamb, looking at the door
+        ("doorway", Pose2(-0.5, -0.1, 0.0)),
+        ("inside", Pose2(0.7, 0.0, math.pi)),
+        ("mouth", Pose2(0.2, 0.0, math.pi)),  # 0.36 m from the upper jamb, looking out
+    ):
+        ranges = cast_rays(np.array([pose.x_m, pose.y_m]), bearings + pose.yaw_rad, walls_xy, 5.0)
+        scan = DepthScan(0.0, bearings, np.where(np.isfinite(ranges), ranges, 5.0), 5.0)
+        parent = None if prev is None else (prev[0], prev[1].between(pose))
+        kf = m.add_keyframe(float(len(ids)), pose, scan_to_polygon(scan), parent)
+        ids[name] = kf.keyframe_id
+        prev = (kf.keyframe_id, pose)
+    return m, ids
+
+
+def test_a_leg_out_through_a_door_too_narrow_for_the_full_clearance_goes_through_the_door():
+    """In a closet's doorway, the next route keyframe just behind a jamb: the straight leg grazes
+    the jamb, and the free-space grid at the full clearance (0.4 m) finds a 0.8 m door closed.
+    A leg needs the body radius and leg margin clear, so the grid at that clearance plans the
+    way out through the door. (Apartment seed 6: the straight leg was seen blocked at every
+    step, with no way round, and every frontier left was set aside from there at 0.785.)"""
+    from companion.core.geometry import point_segment_distances
+
+    m, ids = _closet_map()
+    frame = ids["mouth"]
+    planner = FrontierPlanner()
+    world = Pose2(0.2, 0.0, math.pi)  # the mouth keyframe's pose in the world
+    target = m.pose_in(frame, ids["outside"])
+    wp = np.array([target.x_m, target.y_m])
+    vehicle = Pose2(0.0, 0.0, math.atan2(wp[1], wp[0]))  # at the keyframe's origin, facing the leg
+    live = world.inverse().apply(np.array([[0.0, y] for y in np.arange(0.3, 2.0, 0.05)]))  # the jamb's wall
+    planner.plan(m, frame, vehicle, 100.0, live_obstacles_xy=live)
+    view = m.view(frame)
+    here = np.zeros(2)
+    required = planner.params.clearance_m
+    assert planner._leg_blocked(vehicle, here, wp, required)  # the straight leg grazes the jamb
+    full = planner._reach(view, here)
+    assert full is None or full.path_to(wp, snap=True) is None  # the door, at the full clearance
+    points, fresh = planner._leg_points(m, frame, view, here, ids["outside"], wp, required)
+    assert fresh and points.shape[0] >= 2
+    path_world = world.apply(np.vstack((here, points)))
+    legs = np.stack((path_world[:-1], path_world[1:]), axis=1)
+    floor = planner.params.body_radius_m + planner.params.leg_margin_m
+    jambs = np.array([[0.0, 0.3], [0.0, -0.5]])
+    assert point_segment_distances(jambs, legs).min() >= floor - 0.03
+    assert np.all(path_world[1:-1, 0] < 0.2)  # out through the door, not along the closet wall
+    assert np.hypot(*(path_world[-1] - (-0.3, 0.4))) <= planner.params.grid.snap_m
+    facing = Pose2(0.0, 0.0, math.atan2(points[0][1], points[0][0]))
+    assert not planner._leg_blocked(facing, here, points[0], required)

@@ -203,7 +203,7 @@ class FrontierPlanner:
     _velocity: FloatArray = field(default_factory=lambda: np.zeros(2))
     _live_view: Callable[[], shapely.Geometry] | None = None
     _live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
-    _grid: tuple[LocalView, FreeSpaceGrid] | None = None
+    _grids: dict[float, tuple[LocalView, FreeSpaceGrid]] = field(default_factory=dict)  # by clearance
     _grid_tried: tuple[LocalView, int, int] | None = None  # (view, cell): the grid found nothing there
     _live_floor_m: float = 0.0  # see _live_floor
 
@@ -335,7 +335,11 @@ class FrontierPlanner:
 
     def _leg_required(self, required: float) -> float:
         """A leg through known free space needs the body radius clear, not the whole margin."""
-        return min(required, self.params.body_radius_m + self.params.leg_margin_m)
+        return min(required, self._leg_clearance())
+
+    def _leg_clearance(self) -> float:
+        """The clearance a grid path for a leg keeps: the body radius and leg margin."""
+        return self.params.body_radius_m + self.params.leg_margin_m
 
     def _live_floor(self, here: FloatArray) -> float:
         """The least clearance from the newest returns any path needs: the body radius and leg
@@ -346,7 +350,7 @@ class FrontierPlanner:
         if self._live.shape[0] == 0:
             return 0.0
         now = float(np.min(np.hypot(*(self._live - here).T)))
-        return min(self.params.body_radius_m + self.params.leg_margin_m, 0.95 * now)
+        return min(self._leg_clearance(), 0.95 * now)
 
     def _past_corners(self, path: FloatArray, here: FloatArray) -> FloatArray:
         """The path without the corners already passed (its last point always stays)."""
@@ -578,14 +582,17 @@ class FrontierPlanner:
         self._check_through_graph(local_map, key.keyframe_id)
         return bool(local_map.keyframes[key.keyframe_id].kinds[key.index] == VertexKind.FRONTIER)
 
-    def _reach(self, view: LocalView, here: FloatArray) -> Reach | None:
-        """The wavefront through the view's free space (with the newest returns) from ``here``."""
-        if self._grid is None or self._grid[0] is not view:
-            grid = FreeSpaceGrid.build(view.shapes, view.walls_xy, self.params.clearance_m, self.params.grid)
-            self._grid = (view, grid)
+    def _reach(self, view: LocalView, here: FloatArray, clearance_m: float | None = None) -> Reach | None:
+        """The wavefront through the view's free space (with the newest returns) from ``here``,
+        keeping ``clearance_m`` (default: the planner's clearance) from walls and unknown space."""
+        clearance = self.params.clearance_m if clearance_m is None else clearance_m
+        cached = self._grids.get(clearance)
+        if cached is None or cached[0] is not view:
+            cached = (view, FreeSpaceGrid.build(view.shapes, view.walls_xy, clearance, self.params.grid))
+            self._grids = {k: v for k, v in self._grids.items() if v[0] is view}
+            self._grids[clearance] = cached
         live_view = None if self._live_view is None else self._live_view()
-        grid = self._grid[1].with_live_scan(self._live, live_view)
-        return grid.reach_from(here)
+        return cached[1].with_live_scan(self._live, live_view).reach_from(here)
 
     # -- accessibility (2.9.2) ------------------------------------------------------------------
 
@@ -856,10 +863,14 @@ class FrontierPlanner:
                 return pts, False
         pts = wp[None, :]
         if not self._accessible(view, here, wp, self._leg_required(required)):
-            reach = self._reach(view, here)
-            path = None if reach is None else reach.path_to(wp, snap=True)
-            if path is not None:
-                pts = path
+            # A leg needs the body radius clear, not the whole margin: a door too narrow for the
+            # grid at the full clearance (0.9 m) is still a way out at the leg's.
+            for clearance in (self.params.clearance_m, self._leg_clearance()):
+                reach = self._reach(view, here, clearance)
+                path = None if reach is None else reach.path_to(wp, snap=True)
+                if path is not None:
+                    pts = path
+                    break
         short = float(np.hypot(*(pts[-1] - wp))) > self.params.waypoint_reached_m
         self._leg = _Leg(frame_id, keyframe_id, pts, ends_short=short)
         return pts, True
