@@ -126,7 +126,7 @@ def test_a_frontier_the_newest_scan_sees_as_wall_is_closed_without_flying_to_it(
     closer = DepthScan(0.1, BEARINGS, np.minimum((wall_x - 0.9) / np.cos(BEARINGS), 5.0), 5.0)
     result = ex.step(Odometry(0.1, Pose2(0.9, 0.0, 0.0)), closer)
     assert len(ex.map) == 1  # no new view: the scan alone closed them
-    assert np.all(kf.kinds[middle] == VertexKind.FREE)
+    assert np.all(kf.kinds[middle] == VertexKind.OBSTACLE)  # a wall right there
     assert np.all(kf.kinds[ends] == VertexKind.FRONTIER)
     assert ex.planner.closed_on_surface >= middle.size
     goal = ex.planner.goal

@@ -23,6 +23,16 @@ def test_a_lone_open_vertex_spans_half_of_each_edge_beside_it():
     assert np.all(sizes[kinds != F] == 0.0)
 
 
+def test_a_lone_open_vertex_left_between_seen_spans_nothing():
+    """Its neighbours closed by views that saw beyond them, a lone open vertex spans no
+    frontier: not worth a flight (most flights after 99 % coverage went to such vertices). Two
+    open vertices there still span the edge between them."""
+    kinds = np.array([W, FREE, F, FREE, W, W], dtype=np.int8)
+    assert run_sizes_m(kinds, ring(6))[2] == 0.0
+    pair = np.array([W, FREE, F, F, FREE, W], dtype=np.int8)
+    assert np.allclose(run_sizes_m(pair, ring(6))[2:4], 0.125 + 0.25 + 0.125)
+
+
 def test_a_run_spans_its_inner_edges_and_half_of_its_end_edges():
     kinds = np.array([W, F, F, F, W, W], dtype=np.int8)
     sizes = run_sizes_m(kinds, ring(6))

@@ -165,7 +165,8 @@ def test_frontiers_on_a_wall_only_a_view_beyond_the_neighbourhood_saw_are_closed
         off_wall = (kf_a.kinds == VertexKind.FRONTIER) & (v[:, 0] < 4.6)  # 0.35 m or more from it
         assert off_wall.any()
     assert np.count_nonzero(kinds[0] == VertexKind.FRONTIER) >= 3  # without the snap: left open
-    assert np.all(kinds[1] == VertexKind.FREE)
+    assert not np.any(kinds[1] == VertexKind.FRONTIER)
+    assert np.count_nonzero(kinds[1] == VertexKind.OBSTACLE) >= 3  # closed as the wall they lie on
 
 
 def test_closing_through_the_graph_since_a_keyframe_tests_only_the_views_from_it_on():
@@ -272,3 +273,24 @@ def test_a_neighbour_placed_through_a_wall_the_keyframe_saw_neither_closes_nor_i
     assert np.count_nonzero(kf0.kinds == VertexKind.FRONTIER) < np.count_nonzero(
         kf0.polygon.kinds == VertexKind.FRONTIER
     )
+
+
+def test_a_frontier_vertex_on_a_wall_another_view_saw_closes_as_that_wall():
+    """A's arc runs along a wall that B (1.5 m ahead) saw 5 cm short of it: those vertices are the
+    wall, closed as obstacle, not as seen space; so a gap left open between two of them (a door
+    seen through) still spans half of each edge beside it, and stays worth a flight."""
+    from companion.core.frontiers import run_sizes_m
+
+    m = LocalMap()
+    a_id, a_pose = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+    a = m.keyframes[a_id]
+    wall = DepthScan(0.0, BEARINGS, 3.45 / np.cos(BEARINGS), 5.0)  # a wall across at x = 4.95
+    add_pose(m, Pose2(1.5, 0.0, 0.0), (a_id, a_pose), wall)
+    v = a.polygon.vertices_xy
+    on_wall = (a.polygon.kinds == VertexKind.FRONTIER) & (v[:, 0] > 4.85) & (np.abs(v[:, 1]) < 3.0)
+    assert np.count_nonzero(on_wall) >= 3
+    assert np.all(a.kinds[on_wall] == VertexKind.OBSTACLE)
+    gap = int(np.flatnonzero(on_wall)[1])
+    kinds = a.kinds.copy()
+    kinds[gap] = VertexKind.FRONTIER  # one left open between two of them
+    assert run_sizes_m(kinds, v)[gap] > 0.0

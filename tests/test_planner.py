@@ -1,5 +1,6 @@
 """Frontier planner rules, one at a time."""
 
+import functools
 import math
 
 import numpy as np
@@ -390,3 +391,40 @@ def test_a_leg_out_through_a_door_too_narrow_for_the_full_clearance_goes_through
     assert np.hypot(*(path_world[-1] - (-0.3, 0.4))) <= planner.params.grid.snap_m
     facing = Pose2(0.0, 0.0, math.atan2(points[0][1], points[0][0]))
     assert not planner._leg_blocked(facing, here, points[0], required)
+
+
+def _all_surface(seen: bool, points_xy: np.ndarray, tol_m: float) -> np.ndarray:
+    """A newest scan that sees every point as surface, or none."""
+    return np.full(points_xy.shape[0], seen)
+
+
+def test_frontiers_out_of_reach_from_their_origin_that_the_scan_sees_as_wall_are_closed_not_failed():
+    """Flown back to a keyframe whose frontiers are out of reach from its origin: the vehicle
+    first faces the way the keyframe looked (it then sees the whole polygon), and the frontiers
+    the newest scan sees a wall right at are closed as walls, not counted as failed tries (set
+    aside, such vertices by a corridor wall ended runs `unreachable_frontiers_left` at coverage
+    1.000). Those it does not see as wall still count a failed try."""
+    from companion.core.planner import _Route
+
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    angles = np.linspace(0.0, 2.0 * math.pi, 90)
+    boxed_in = 0.45 * np.column_stack((np.cos(angles), np.sin(angles)))  # returns all round: nothing in reach
+    for seen_as_wall in (True, False):
+        kf.kinds[:] = kf.polygon.kinds
+        kf.version += 1
+        planner = FrontierPlanner()
+        planner.route = _Route([kf.keyframe_id], kf.keyframe_id)
+        planner._arrived_at = kf.keyframe_id
+        targets = planner._targets(m, kf.keyframe_id)
+        assert targets
+        live = {"live_obstacles_xy": boxed_in, "live_surface": functools.partial(_all_surface, seen_as_wall)}
+        planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 1.0), 100.0, **live)
+        assert planner.route is not None and not planner.attempts  # it turns to look first
+        assert np.all(kf.kinds[targets] == VertexKind.FRONTIER)
+        planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.1, **live)
+        if seen_as_wall:
+            assert np.all(kf.kinds[targets] == VertexKind.OBSTACLE) and not planner.attempts
+        else:
+            assert np.all(kf.kinds[targets] == VertexKind.FRONTIER)
+            assert {k.keyframe_id for k in planner.attempts} == {kf.keyframe_id}

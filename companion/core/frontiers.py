@@ -47,6 +47,13 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     into[run[first]] = np.roll(run_len, 1)[first]
     out = np.zeros(count)
     out[run[last]] = run_len[last]
+    # A lone open vertex between two closed ones (other views saw the space on both sides of it)
+    # spans nothing unseen: flights to such vertices were a third of the flight time after 99 %
+    # coverage, and found nothing. Next to a wall (a gap seen through) it spans half of each edge.
+    kinds_o = kinds[order]
+    seen_both = first & last & (np.roll(kinds_o, 1) == VertexKind.FREE) & (np.roll(kinds_o, -1) == VertexKind.FREE)
+    into[run[seen_both]] = 0.0
+    out[run[seen_both]] = 0.0
     total = 0.5 * (into + out) + inside
     sizes[order[run_open]] = total[run[run_open]]
     return sizes

@@ -90,11 +90,12 @@ class Keyframe:
             memo = self.open_memo = (self.version, idx)
         return memo[1]
 
-    def close(self, indices: NDArray[np.intp]) -> None:
-        """Type these frontier vertices free (the only change a vertex ever sees: frontiers
-        close, nothing reopens), and count the change so memos of the open set know."""
+    def close(self, indices: NDArray[np.intp], kind: VertexKind = VertexKind.FREE) -> None:
+        """Type these frontier vertices free (the space beyond them was seen) or obstacle (they
+        lie on a wall another view saw): the only change a vertex ever sees, frontiers close and
+        nothing reopens. Counts the change so memos of the open set know."""
         if indices.size:
-            self.kinds[indices] = VertexKind.FREE
+            self.kinds[indices] = kind
             self.version += 1
 
     def beyond_points(self, indices: NDArray[np.intp], offset_m: float) -> FloatArray:
@@ -302,19 +303,21 @@ class LocalMap:
             hit[ask] = deep
             seen |= hit.any(axis=0)
         walls = [self.keyframes[int(k)].walls.reshape(-1, 2) for k in ids]
+        on_wall = np.zeros(idx.size, dtype=bool)
         if p.graph_wall_snap_m > 0.0 and not seen.all() and any(w.size for w in walls):
             # The still-open vertices against those views' walls, moved into this keyframe's frame.
             frames = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses]
             ask = np.flatnonzero(~seen)
-            seen[ask] = _near(v[ask], apply_grouped(frames, walls).reshape(-1, 2, 2), p.graph_wall_snap_m)
-        closed = idx[seen]
-        kf.close(closed)
-        return int(closed.size)
+            on_wall[ask] = _near(v[ask], apply_grouped(frames, walls).reshape(-1, 2, 2), p.graph_wall_snap_m)
+        kf.close(idx[seen])
+        kf.close(idx[on_wall], VertexKind.OBSTACLE)
+        return int(np.count_nonzero(seen | on_wall))
 
-    def close_frontiers(self, keyframe_id: int, indices: NDArray[np.intp]) -> None:
-        """Type frontier vertices free: looked at, nothing beyond them to explore."""
+    def close_frontiers(self, keyframe_id: int, indices: NDArray[np.intp], kind: VertexKind = VertexKind.FREE) -> None:
+        """Close frontier vertices: looked at, nothing beyond them to explore (``kind`` obstacle
+        when a wall was seen right there)."""
         kf = self.keyframes[keyframe_id]
-        kf.close(indices[kf.kinds[indices] == VertexKind.FRONTIER])
+        kf.close(indices[kf.kinds[indices] == VertexKind.FRONTIER], kind)
 
     def open_frontier_count(self) -> int:
         return int(sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values()))
@@ -414,7 +417,7 @@ class LocalMap:
                 seen[shallow[~walled]] = False
             else:
                 seen[shallow] = False
-        _free_where(kfs, idx, seen)
+        _close_where(kfs, idx, seen)
 
     def _misplaced(self, view: LocalView) -> NDArray[np.bool_]:
         """Which of the view's keyframes (``view.poses`` order; never its own) were placed by a
@@ -461,7 +464,7 @@ class LocalMap:
         own = kf.open_frontier_indices()
         if own.size:
             theirs_walls = view.walls_xy[own_walls.shape[0] :]
-            kf.close(own[_near(kf.polygon.vertices_xy[own], theirs_walls, snap)])
+            kf.close(own[_near(kf.polygon.vertices_xy[own], theirs_walls, snap)], VertexKind.OBSTACLE)
         if own_walls.shape[0] == 0:
             return
         poses = [pose for k, pose in view.poses.items() if k != kf_id]
@@ -470,15 +473,17 @@ class LocalMap:
         if not any(i.size for i in idx):
             return
         pts = apply_grouped(poses, [other.polygon.vertices_xy[i] for other, i in zip(kfs, idx, strict=True)])
-        _free_where(kfs, idx, _near(pts, own_walls, snap))
+        _close_where(kfs, idx, _near(pts, own_walls, snap), VertexKind.OBSTACLE)
 
 
-def _free_where(kfs: list[Keyframe], indices: list[NDArray[np.intp]], hit: NDArray[np.bool_]) -> None:
-    """Type free the vertices ``indices[j]`` of ``kfs[j]`` whose entry in ``hit`` (all keyframes'
-    entries one after another) is set."""
+def _close_where(
+    kfs: list[Keyframe], indices: list[NDArray[np.intp]], hit: NDArray[np.bool_], kind: VertexKind = VertexKind.FREE
+) -> None:
+    """Close (as ``kind``) the vertices ``indices[j]`` of ``kfs[j]`` whose entry in ``hit`` (all
+    keyframes' entries one after another) is set."""
     start = 0
     for kf, i in zip(kfs, indices, strict=True):
-        kf.close(i[hit[start : start + i.size]])
+        kf.close(i[hit[start : start + i.size]], kind)
         start += i.size
 
 
