@@ -25,7 +25,7 @@ def test_a_lone_open_vertex_spans_half_of_each_edge_beside_it():
 
 def test_a_lone_open_vertex_left_between_seen_spans_nothing():
     """Its neighbours closed by views that saw beyond them, a lone open vertex spans no
-    frontier: not worth a flight (most flights after 99 % coverage went to such vertices). Two
+    frontier: not worth a flight (two in three flights to such vertices found nothing). Two
     open vertices there still span the edge between them."""
     kinds = np.array([W, FREE, F, FREE, W, W], dtype=np.int8)
     assert run_sizes_m(kinds, ring(6))[2] == 0.0

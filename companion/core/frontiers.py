@@ -47,9 +47,10 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     into[run[first]] = np.roll(run_len, 1)[first]
     out = np.zeros(count)
     out[run[last]] = run_len[last]
-    # A lone open vertex between two closed ones (other views saw the space on both sides of it)
-    # spans nothing unseen: flights to such vertices were a third of the flight time after 99 %
-    # coverage, and found nothing. Next to a wall (a gap seen through) it spans half of each edge.
+    # A lone open vertex between two closed as seen (other views saw the space on both sides of
+    # it; the view's own origin, where the vehicle stood, counts as seen) spans nothing: two in
+    # three flights to such vertices found nothing. Beside a wall (a gap seen through, or a vertex
+    # closed as the wall it lies on) it spans half of each edge.
     kinds_o = kinds[order]
     seen_both = first & last & (np.roll(kinds_o, 1) == VertexKind.FREE) & (np.roll(kinds_o, -1) == VertexKind.FREE)
     into[run[seen_both]] = 0.0
