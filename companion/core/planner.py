@@ -341,6 +341,18 @@ class FrontierPlanner:
         """The clearance a grid path for a leg keeps: the body radius and leg margin."""
         return self.params.body_radius_m + self.params.leg_margin_m
 
+    def _path_clear_of_live(self, here: FloatArray, path: FloatArray, required: float) -> bool:
+        """Every leg of a path from ``here`` keeps from the newest returns what a leg is held to
+        as it is flown (:meth:`_leg_blocked`). A grid at a leg's clearance lets a path pass a return closer than that
+        (its cells are 0.15 m): taken, such a goal was dropped at once, the next one the same,
+        50 of them in turn, for 20 minutes on one spot (offices2 seed 4)."""
+        if self._live.shape[0] == 0:
+            return True
+        starts = np.vstack((here, path[:-1]))
+        need = max(self._leg_required(required), self._live_floor_m)
+        segments = np.stack((starts, path), axis=1)
+        return bool(point_segment_distances(self._live, segments).min() >= need)
+
     def _live_floor(self, here: FloatArray) -> float:
         """The least clearance from the newest returns any path needs: the body radius and leg
         margin, or (already closer to one) nearly what the vehicle has now. The setpoint lead
@@ -559,20 +571,27 @@ class FrontierPlanner:
         last = self._grid_tried
         if not dense and last is not None and last[0] is view and last[1:] == tried[1:]:
             return None
-        reach: Reach | None = None
+        # At the full clearance first, then at a leg's (what each leg of such a path is held to
+        # as it is flown): a 0.9 m door is closed to the grid at 0.4 m, and a room behind one,
+        # seen from the corridor, had its frontiers set aside from there (apartment seed 15).
         searched = False
-        for c in candidates:
-            if not self._open_through_graph(local_map, c.key):
-                continue
+        for clearance in (self.params.clearance_m, self._leg_clearance()):
+            eased = clearance < self.params.clearance_m  # its paths may pass returns too close
+            reach: Reach | None = None
+            for c in candidates:
+                if not self._open_through_graph(local_map, c.key):  # asked again, it is cached
+                    continue
+                if reach is None:
+                    searched = True
+                    reach = self._reach(view, here, clearance)
+                    if reach is None:
+                        break
+                path = reach.path_to(c.goal_xy)
+                if path is not None and (not eased or self._path_clear_of_live(here, path, required)):
+                    c.path = path
+                    return c
             if not searched:
-                searched = True
-                reach = self._reach(view, here)
-            if reach is None:
-                break
-            path = reach.path_to(c.goal_xy)
-            if path is not None:
-                c.path = path
-                return c
+                break  # no candidate is open
         if searched:
             self._grid_tried = tried
         return None
