@@ -11,7 +11,7 @@ from companion.core.frontiers import FrontierKey, targetable_indices
 from companion.core.geometry import Pose2
 from companion.core.local_map import LocalMap
 from companion.core.messages import DepthScan
-from companion.core.planner import FrontierPlanner, Mode, PlannerParams
+from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, _Route
 
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
 
@@ -95,10 +95,10 @@ def test_a_frontier_seen_through_a_door_too_narrow_to_fly_is_approached_not_just
 
 
 def test_a_frontier_behind_a_door_the_grid_closes_at_the_full_clearance_is_tried_at_a_legs():
-    """No straight path reaches the frontiers behind a gap, and the free-space grid at the full
-    clearance finds none either (a 0.9 m door rasterised at 0.4 m may close): the grid at a leg's
-    clearance (body radius and leg margin, what each leg of the path is held to as it is flown)
-    is asked next, and its path taken. Without it, a room behind a 0.9 m door seen from the
+    """At a keyframe's origin no straight path reaches the frontiers behind a gap, and the
+    free-space grid at the full clearance finds none either (a 0.9 m door rasterised at 0.4 m may
+    close): the grid at a leg's clearance (body radius and leg margin, what each leg of the path
+    is held to as it is flown) is asked next, and its path taken. Without it, a room behind a 0.9 m door seen from the
     corridor had its frontiers set aside (apartment seed 15, coverage 0.972)."""
     ranges = 2.0 / np.cos(BEARINGS)  # a wall across the way, 2 m ahead
     ranges[(BEARINGS > 0.25) & (BEARINGS < 0.40)] = 5.0  # seen through a gap to the sensor's range
@@ -122,16 +122,21 @@ def test_a_frontier_behind_a_door_the_grid_closes_at_the_full_clearance_is_tried
             asked.append(full if clearance_m is None else clearance_m)
             return ThroughTheGap() if asked[-1] == leg else None
 
-    planner = GridClosedAtTheFullClearance(params)
-    decision = planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0)
-    assert asked == [full, leg]
+    def at_the_origin(**live: np.ndarray) -> tuple[GridClosedAtTheFullClearance, Decision]:
+        """Flown back to the keyframe's origin by a route, where its frontiers are taken."""
+        planner = GridClosedAtTheFullClearance(params)
+        planner.route = _Route([kf.keyframe_id], kf.keyframe_id)
+        planner._arrived_at = kf.keyframe_id
+        return planner, planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0, **live)
+
+    planner, decision = at_the_origin()
+    assert asked == [full, full, leg]  # as rapid selection (full only), then at the origin (both)
     assert decision.mode is Mode.EXPLORING and planner.goal is not None and not planner.goal.approach
     assert planner.goal.path is not None and np.allclose(planner.goal.path[0], (1.8, 0.6))
     assert not planner.attempts
     # A path the newest scan sees passing a return closer than a leg may pass is not taken: such
     # goals were dropped at once, one after another, for 20 minutes (offices2 seed 4).
-    planner = GridClosedAtTheFullClearance(params)
-    planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0, live_obstacles_xy=np.array([[1.0, 0.45]]))
+    planner, _ = at_the_origin(live_obstacles_xy=np.array([[1.0, 0.45]]))
     assert planner.goal is None or planner.goal.path is None or not np.allclose(planner.goal.path[0], (1.8, 0.6))
 
 
@@ -445,7 +450,6 @@ def test_frontiers_out_of_reach_from_their_origin_that_the_scan_sees_as_wall_are
     the newest scan sees a wall right at are closed as walls, not counted as failed tries (set
     aside, such vertices by a corridor wall ended runs `unreachable_frontiers_left` at coverage
     1.000). Those it does not see as wall still count a failed try."""
-    from companion.core.planner import _Route
 
     m = LocalMap()
     kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))

@@ -130,6 +130,7 @@ class _Goal:
     arrived_s: float | None = None
     path: FloatArray | None = None  # waypoints to the goal point, in the frontier keyframe's frame
     approach: bool = False  # only as near as the free space leads, to look again from there
+    eased: bool = False  # its path keeps only a leg's clearance: found blocked, that is a failed try
     start_local_xy: tuple[float, float] = (math.nan, math.nan)  # where it was taken, same frame
 
 
@@ -147,6 +148,7 @@ class _Candidate:
     score: float
     path: FloatArray | None = None  # waypoints through free space when no straight path is clear
     approach: bool = False  # a step nearer a frontier out of reach, not a goal that sees it
+    eased: bool = False  # its path was found by the grid at a leg's clearance
 
     @property
     def aim_xy(self) -> FloatArray:
@@ -308,6 +310,8 @@ class FrontierPlanner:
             # leg, that test dropped the goal the step after it was taken, a door's frontiers
             # one after another until they were set aside.)
             if self._leg_blocked(vehicle, here, pts[0], required):
+                if goal.eased:  # the way the full clearance did not find: blocked, it is a try
+                    self._failed(goal.key, stamp_s)
                 self._drop(goal.key, stamp_s)
                 return None
             return self._fly(vehicle, pts[0], look, Mode.EXPLORING, goal.key)
@@ -396,7 +400,15 @@ class FrontierPlanner:
         look = wrap_angle(c.look_rad + pose.yaw_rad)
         sx, sy = pose.apply_point(float(here[0]), float(here[1]))
         self.goal = _Goal(
-            c.key, (lx, ly), look, stamp_s, stamp_s + budget, path=path, approach=c.approach, start_local_xy=(sx, sy)
+            c.key,
+            (lx, ly),
+            look,
+            stamp_s,
+            stamp_s + budget,
+            path=path,
+            approach=c.approach,
+            start_local_xy=(sx, sy),
+            eased=c.eased,
         )
         self._arrived_at = None
 
@@ -571,11 +583,15 @@ class FrontierPlanner:
         last = self._grid_tried
         if not dense and last is not None and last[0] is view and last[1:] == tried[1:]:
             return None
-        # At the full clearance first, then at a leg's (what each leg of such a path is held to
-        # as it is flown): a 0.9 m door is closed to the grid at 0.4 m, and a room behind one,
-        # seen from the corridor, had its frontiers set aside from there (apartment seed 15).
+        # At a keyframe's origin, at the full clearance first, then at a leg's (what each leg of
+        # such a path is held to as it is flown): a 0.9 m door is closed to the grid at 0.4 m,
+        # and a room behind one, seen from the corridor, had its frontiers set aside from there
+        # (apartment seed 15). Not from anywhere else: such goals taken wherever the vehicle
+        # was, each found blocked further on, held it on one spot until the time limit
+        # (room seed 1 without loop closures).
         searched = False
-        for clearance in (self.params.clearance_m, self._leg_clearance()):
+        clearances = (self.params.clearance_m, self._leg_clearance()) if dense else (self.params.clearance_m,)
+        for clearance in clearances:
             eased = clearance < self.params.clearance_m  # its paths may pass returns too close
             reach: Reach | None = None
             for c in candidates:
@@ -588,7 +604,7 @@ class FrontierPlanner:
                         break
                 path = reach.path_to(c.goal_xy)
                 if path is not None and (not eased or self._path_clear_of_live(here, path, required)):
-                    c.path = path
+                    c.path, c.eased = path, eased
                     return c
             if not searched:
                 break  # no candidate is open
