@@ -473,3 +473,25 @@ def test_frontiers_out_of_reach_from_their_origin_that_the_scan_sees_as_wall_are
         else:
             assert np.all(kf.kinds[targets] == VertexKind.FRONTIER)
             assert {k.keyframe_id for k in planner.attempts} == {kf.keyframe_id}
+
+
+def test_a_goal_on_a_path_at_a_legs_clearance_found_blocked_counts_a_failed_try():
+    """A goal through the grid at a leg's clearance (the full clearance found no way) whose path
+    the newest scan sees blocked counts a failed try, not only a cooldown: dropped and taken
+    again in turn, such goals held a vehicle on one spot. Other goals found blocked cool down."""
+    from companion.core.planner import _Candidate
+
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    open_idx = targetable_indices(kf, 0.3)
+    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    goal_xy = np.array([3.0, 0.0])
+    jamb = np.array([[1.5, 0.1]])  # right on the path's first leg
+    for eased in (True, False):
+        planner = FrontierPlanner()
+        planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0, live_obstacles_xy=jamb)
+        candidate = _Candidate(key, goal_xy, 0.0, 0.0, path=goal_xy[None, :].copy(), eased=eased)
+        planner._commit(m, kf.keyframe_id, candidate, np.zeros(2), 100.0)
+        planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.1, live_obstacles_xy=jamb)
+        assert key in planner._cooling
+        assert planner.attempts.get(key, 0) == (1 if eased else 0)
