@@ -347,9 +347,9 @@ class FrontierPlanner:
 
     def _path_clear_of_live(self, here: FloatArray, path: FloatArray, required: float) -> bool:
         """Every leg of a path from ``here`` keeps from the newest returns what a leg is held to
-        as it is flown (:meth:`_leg_blocked`). A grid at a leg's clearance lets a path pass a return closer than that
-        (its cells are 0.15 m): taken, such a goal was dropped at once, the next one the same,
-        50 of them in turn, for 20 minutes on one spot (offices2 seed 4)."""
+        as it is flown (:meth:`_leg_blocked`). The grid at a leg's clearance lets a path pass a
+        return closer than that (its cells are 0.15 m): taken, such a goal was dropped at once,
+        the next one the same, fifty in turn for 20 minutes on one spot (offices2 seed 4)."""
         if self._live.shape[0] == 0:
             return True
         starts = np.vstack((here, path[:-1]))
