@@ -367,18 +367,18 @@ def test_a_leg_blocked_when_faced_is_planned_again_only_so_often_from_one_spot()
     assert planner._may_replan(7, 4, here + 1.0)  # another keyframe
 
 
-def _closet_map(depth_m: float = 1.35, door_m: float = 0.8) -> tuple[LocalMap, dict[str, int]]:
-    """A room (x < 0) and a 1.35 m wide closet (x > 0, ``depth_m`` deep) joined by a door in the
-    wall x = 0 (jambs at y = 0.3 and y = 0.3 - ``door_m``); keyframes taken on the way in, the
-    last in the door's mouth looking out. Returns the map and its keyframe ids by name."""
+def _closet_map() -> tuple[LocalMap, dict[str, int]]:
+    """A room (x < 0) and a 1.35 m closet (x > 0) joined by a 0.8 m door in the wall x = 0
+    (jambs at y = -0.5 and y = 0.3); keyframes taken on the way in, the last in the door's
+    mouth looking out. Returns the map and its keyframe ids by name."""
     from sitl.depth_sensor import cast_rays
 
     walls = [
         ((-4.0, -2.0), (0.0, -2.0)),
-        ((0.0, -2.0), (0.0, 0.3 - door_m)),
-        ((0.0, -0.675), (depth_m, -0.675)),
-        ((depth_m, -0.675), (depth_m, 0.675)),
-        ((depth_m, 0.675), (0.0, 0.675)),
+        ((0.0, -2.0), (0.0, -0.5)),
+        ((0.0, -0.675), (1.35, -0.675)),
+        ((1.35, -0.675), (1.35, 0.675)),
+        ((1.35, 0.675), (0.0, 0.675)),
         ((0.0, 0.3), (0.0, 2.0)),
         ((0.0, 2.0), (-4.0, 2.0)),
         ((-4.0, 2.0), (-4.0, -2.0)),

@@ -341,6 +341,11 @@ class FrontierPlanner:
         """A leg through known free space needs the body radius clear, not the whole margin."""
         return min(required, self._leg_clearance())
 
+    def _leg_floor(self, required: float) -> float:
+        """What a leg keeps from the newest returns as it is flown: a leg's clearance, or the
+        live floor when that is more."""
+        return max(self._leg_required(required), self._live_floor_m)
+
     def _leg_clearance(self) -> float:
         """The clearance a grid path for a leg keeps: the body radius and leg margin."""
         return self.params.body_radius_m + self.params.leg_margin_m
@@ -352,10 +357,8 @@ class FrontierPlanner:
         the next one the same, fifty in turn for 20 minutes on one spot (offices2 seed 4)."""
         if self._live.shape[0] == 0:
             return True
-        starts = np.vstack((here, path[:-1]))
-        need = max(self._leg_required(required), self._live_floor_m)
-        segments = np.stack((starts, path), axis=1)
-        return bool(point_segment_distances(self._live, segments).min() >= need)
+        segments = np.stack((np.vstack((here, path[:-1])), path), axis=1)
+        return bool(point_segment_distances(self._live, segments).min() >= self._leg_floor(required))
 
     def _live_floor(self, here: FloatArray) -> float:
         """The least clearance from the newest returns any path needs: the body radius and leg
@@ -387,7 +390,7 @@ class FrontierPlanner:
         facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
         if not (facing and self._live.shape[0]):
             return False
-        return _segment_clearance(here, wp, self._live) < max(self._leg_required(required), self._live_floor_m)
+        return _segment_clearance(here, wp, self._live) < self._leg_floor(required)
 
     def _commit(self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float) -> None:
         pose = local_map.pose_in(frame_id, c.key.keyframe_id).inverse()
