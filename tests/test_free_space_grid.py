@@ -45,25 +45,6 @@ def test_a_door_narrower_than_the_vehicle_needs_has_no_path():
     assert reach.path_to(np.array([9.0, 1.0])) is not None  # the corridor itself is still reachable
 
 
-def test_the_same_raster_at_a_smaller_clearance_opens_a_narrower_door():
-    free, walls = corridor_and_room(0.8)
-    wide = FreeSpaceGrid.build(free, walls, CLEARANCE_M)
-    start, goal = np.array([1.0, 1.0]), np.array([7.0, 5.0])
-    reach = wide.reach_from(start)
-    assert reach is not None and reach.path_to(goal) is None
-    narrow = wide.at_clearance(0.3)
-    assert narrow.blocked is wide.blocked  # not rasterised again
-    assert narrow.free.sum() > wide.free.sum()
-    reach = narrow.reach_from(start)
-    assert reach is not None
-    path = reach.path_to(goal)
-    assert path is not None
-    assert shapely.LineString(np.vstack((start, path))).within(free)
-    assert wall_clearance(path, start, free) >= 0.3 - 0.08
-    with pytest.raises(ValueError, match="padded"):
-        wide.at_clearance(0.5)
-
-
 def test_behind_a_door_too_narrow_the_nearest_reached_place_is_in_front_of_it():
     """The planner's approach: as near a place out of reach as the free space leads."""
     free, walls = corridor_and_room(0.6)

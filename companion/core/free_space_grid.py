@@ -119,13 +119,6 @@ class FreeSpaceGrid:
         grid._mark(blocked, _sample_segments(obstacle_segments, cell / 2.0))
         return grid._eroded(blocked)
 
-    def at_clearance(self, clearance_m: float) -> FreeSpaceGrid:
-        """The same free space kept ``clearance_m`` (no more than this grid's) from what blocks
-        it: the raster is reused, only the erosion is redone (rasterising is the dear part)."""
-        if clearance_m > self.clearance_m:
-            raise ValueError(f"a grid padded for {self.clearance_m} m cannot keep {clearance_m} m")
-        return replace(self, clearance_m=clearance_m)._eroded(self.blocked)
-
     def with_blocked_points(self, points_xy: FloatArray) -> FreeSpaceGrid:
         """A copy with cells at the points blocked too (e.g. the newest scan's returns)."""
         if points_xy.shape[0] == 0:

@@ -630,12 +630,8 @@ class FrontierPlanner:
         clearance = self.params.clearance_m if clearance_m is None else clearance_m
         cached = self._grids.get(clearance)
         if cached is None or cached[0] is not view:
+            cached = (view, FreeSpaceGrid.build(view.shapes, view.walls_xy, clearance, self.params.grid))
             self._grids = {k: v for k, v in self._grids.items() if v[0] is view}
-            wider = [g for c, (_, g) in self._grids.items() if c >= clearance]
-            if wider:  # the same view at another clearance: its raster serves
-                cached = (view, wider[0].at_clearance(clearance))
-            else:
-                cached = (view, FreeSpaceGrid.build(view.shapes, view.walls_xy, clearance, self.params.grid))
             self._grids[clearance] = cached
         live_view = None if self._live_view is None else self._live_view()
         return cached[1].with_live_scan(self._live, live_view).reach_from(here)
