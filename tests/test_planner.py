@@ -514,33 +514,3 @@ def test_a_goal_on_a_path_at_a_legs_clearance_found_blocked_counts_a_failed_try(
         planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.1, live_obstacles_xy=jamb)
         assert key in planner._cooling
         assert planner.attempts.get(key, 0) == (1 if eased else 0)
-
-
-def test_a_route_waypoint_is_passed_at_speed_only_when_the_way_on_runs_straight_ahead():
-    """A waypoint counts as reached only once the vehicle is slow enough to turn there, unless
-    the route goes on straight ahead: then no turn follows for momentum to carry it wide, and
-    braking at every keyframe of a route only cost time. Before a turn it still brakes."""
-    walled = PolygonParams(side_frontier_spacing_m=0.0)
-    near_wall = scan_to_polygon(DepthScan(0.0, BEARINGS, 1.0 / np.cos(BEARINGS), 5.0), walled)
-    open_ahead = scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0), walled)
-
-    def route_with_way_on(onward: Pose2) -> tuple[LocalMap, list[int]]:
-        m = LocalMap()
-        a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), near_wall)
-        b = m.add_keyframe(1.0, Pose2(2.0, 0.0, 0.0), near_wall, (a.keyframe_id, Pose2(2.0, 0.0, 0.0)))
-        c = m.add_keyframe(2.0, onward, open_ahead, (b.keyframe_id, Pose2(2.0, 0.0, 0.0).between(onward)))
-        return m, [a.keyframe_id, b.keyframe_id, c.keyframe_id]
-
-    for onward, passed in ((Pose2(4.0, 0.0, 0.0), True), (Pose2(2.0, 2.0, math.pi / 2), False)):
-        m, (a, b, c) = route_with_way_on(onward)
-        planner = FrontierPlanner(PlannerParams(shortcut_hops=1))
-        planner.route = _Route([b, c], c)
-        fast = planner.plan(m, a, Pose2(1.7, 0.0, 0.0), 10.0, velocity_xy=(1.5, 0.0))
-        assert fast.mode is Mode.BACKTRACKING
-        if passed:
-            assert fast.relocalize_to == b
-            assert (fast.target.x_m, fast.target.y_m) == (4.0, 0.0)  # on towards the next keyframe
-        else:
-            assert fast.relocalize_to is None  # brakes first
-            slow = planner.plan(m, a, Pose2(1.7, 0.0, 0.0), 10.1, velocity_xy=(0.3, 0.0))
-            assert slow.relocalize_to == b
