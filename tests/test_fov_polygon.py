@@ -68,6 +68,9 @@ def test_a_long_shadow_edge_carries_frontier_vertices_along_its_length(near_firs
         if k == VertexKind.FRONTIER and np.isclose(math.atan2(v[1], v[0]), far_ray) and np.hypot(*v) < 4.5
     ]
     assert sorted(on_edge) == pytest.approx([0.8, 1.8, 2.8, 3.8])
+    # Those, and only those, are marked as on a shadow edge (not the range limit's, nor the sides').
+    marked = poly.vertices_xy[poly.on_shadow]
+    assert sorted(np.hypot(*marked.T)) == pytest.approx([0.8, 1.8, 2.8, 3.8])
     # They lie on the edge: the free space is the same as with the single vertex.
     single = scan_to_polygon(scan(r), PolygonParams(occlusion_frontier_spacing_m=0.0, side_frontier_spacing_m=0.0))
     assert poly.shape.is_valid and math.isclose(poly.shape.area, single.shape.area, rel_tol=1e-6)

@@ -294,3 +294,26 @@ def test_a_frontier_vertex_on_a_wall_another_view_saw_closes_as_that_wall():
     kinds = a.kinds.copy()
     kinds[gap] = VertexKind.FRONTIER  # one left open between two of them
     assert run_sizes_m(kinds, v)[gap] > 0.0
+
+
+def test_a_shadow_edge_vertex_behind_the_face_of_a_wall_another_view_saw_is_not_that_wall():
+    """A wall seen from above (its face at y = 0): a vertex on an occlusion's shadow edge more
+    than ``wall_behind_m`` below the face (and within the snap) lies beyond the wall, hidden
+    behind an occluder (a door's shadow edge seen at a shallow angle runs so behind the corridor
+    wall), and stays open; in front of the face, or within range noise behind it, it is on the
+    wall. A vertex of any other kind (a range limit on the wall) snaps from either side: drift
+    puts most of those a little behind the face."""
+    from companion.core.local_map import _on_wall
+
+    p = MapParams()
+    snap, behind = p.wall_snap_m, p.wall_behind_m
+    assert behind < snap
+    wall = np.array([[[0.0, 0.0], [2.0, 0.0]]])
+    seen_from = np.array([[1.0, 1.0]])
+    beyond, front, noise = -(behind + snap) / 2, (behind + snap) / 2, -behind / 2
+    points = np.array([[1.0, beyond], [1.0, front], [1.0, noise]])
+    shadow = np.ones(3, dtype=bool)
+    assert _on_wall(points, shadow, wall, seen_from, snap, behind).tolist() == [False, True, True]
+    assert _on_wall(points, ~shadow, wall, seen_from, snap, behind).tolist() == [True, True, True]
+    from_below = np.array([[1.0, -1.0]])
+    assert _on_wall(points * [1.0, -1.0], shadow, wall, from_below, snap, behind).tolist() == [False, True, True]

@@ -70,6 +70,9 @@ class FovPolygon:
     outward_xy: FloatArray
     has_origin: bool
     shape: shapely.Polygon
+    # Which vertices lie on an occlusion's shadow edge (the space beyond them is hidden behind an
+    # occluder, often a door's jamb, not at the sensor's range or field-of-view limit).
+    on_shadow: NDArray[np.bool_]
 
     @property
     def size(self) -> int:
@@ -174,8 +177,9 @@ def _insert_occlusions(
     spacing_m: float,
     grazing_max_gap_m: float,
     grazing_tol_m: float,
-) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Insert frontier vertices at each range jump (thesis eq. 2.4).
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
+    """Insert frontier vertices at each range jump (thesis eq. 2.4); the last array returned
+    marks them (the shadow edges' vertices).
 
     The first sits at the nearer range on the farther ray, so the polygon edge from it runs along
     the farther ray (observed free) and the occluded wedge behind the nearer return stays outside.
@@ -202,15 +206,17 @@ def _insert_occlusions(
     jumps = np.flatnonzero(np.abs(np.diff(ranges)) > threshold_m)
     jumps = jumps[~_grazing(bearings, ranges, frontier, jumps, grazing_max_gap_m, grazing_tol_m)]
     if jumps.size == 0:
-        return bearings, ranges, frontier
+        return bearings, ranges, frontier, np.zeros(bearings.size, dtype=bool)
     b_out: list[float] = []
     r_out: list[float] = []
     f_out: list[bool] = []
+    s_out: list[bool] = []
     jump_set = set(jumps.tolist())
     for i in range(bearings.size):
         b_out.append(float(bearings[i]))
         r_out.append(float(ranges[i]))
         f_out.append(bool(frontier[i]))
+        s_out.append(False)
         if i in jump_set:
             near, far = min(ranges[i], ranges[i + 1]), max(ranges[i], ranges[i + 1])
             rising = ranges[i] < ranges[i + 1]
@@ -223,7 +229,8 @@ def _insert_occlusions(
                 b_out.append(float(far_bearing))
                 r_out.append(float(r))
                 f_out.append(True)
-    return np.array(b_out), np.array(r_out), np.array(f_out, dtype=bool)
+                s_out.append(True)
+    return np.array(b_out), np.array(r_out), np.array(f_out, dtype=bool), np.array(s_out, dtype=bool)
 
 
 def _subsample(points: FloatArray, frontier: NDArray[np.bool_], spacing_m: float) -> NDArray[np.intp]:
@@ -260,7 +267,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     """Build the field-of-view polygon of ``scan`` in its own (body = keyframe) frame."""
     p = params or PolygonParams()
     ranges, frontier = _classify_ranges(scan, p.frontier_range_tolerance_m)
-    bearings, ranges, frontier = _insert_occlusions(
+    bearings, ranges, frontier, shadow = _insert_occlusions(
         scan.bearings_rad,
         ranges,
         frontier,
@@ -271,7 +278,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     )
     pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
     keep = _subsample(pts, frontier, p.min_vertex_spacing_m)
-    pts, frontier = pts[keep], frontier[keep]
+    pts, frontier, shadow = pts[keep], frontier[keep], shadow[keep]
     span = scan.bearings_rad[-1] - scan.bearings_rad[0]
     increment = span / (scan.bearings_rad.size - 1)
     has_origin = span + 1.5 * increment < 2.0 * math.pi
@@ -280,6 +287,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
         first = _side_points(pts[0], p.side_frontier_spacing_m)
         last = _side_points(pts[-1], p.side_frontier_spacing_m)[::-1]
         pts = np.vstack((np.zeros((1, 2)), first, pts, last))
+        shadow = np.concatenate((np.zeros(1 + first.shape[0], dtype=bool), shadow, np.zeros(last.shape[0], dtype=bool)))
         kinds = np.concatenate(
             (
                 np.array([VertexKind.FREE], dtype=np.int8),
@@ -292,7 +300,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     if not shape.is_valid:
         shape = _largest_valid_part(shape)
     shapely.prepare(shape)
-    return FovPolygon(pts, kinds, _outward_normals(pts), has_origin, shape)
+    return FovPolygon(pts, kinds, _outward_normals(pts), has_origin, shape, shadow)
 
 
 def _side_points(end_xy: FloatArray, spacing_m: float) -> FloatArray:

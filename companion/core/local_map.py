@@ -49,6 +49,10 @@ class MapParams:
     # within the neighbourhood): a vertex a view left on a wall it saw at a grazing angle, where
     # only views outside the neighbourhood saw that wall closer.
     graph_wall_snap_m: float = 0.15
+    # A vertex on an occlusion's shadow edge closes on a wall only on the side that wall was seen
+    # from, or at most this far behind its face (see _on_wall): 5 cm cost 4.6 % of the
+    # exploration time over seeds 1-5, 0.1 m 0.9 %, and both kept apartment's doors open.
+    wall_behind_m: float = 0.1
     # Without a SLAM back end (no loop closures), a revisited place never joins the neighbourhood
     # and a new view's frontiers there would send the vehicle round the same room for ever: close
     # each new keyframe's frontiers against every view along the graph too. It can close a real
@@ -118,6 +122,7 @@ class LocalView:
     shapes: NDArray[np.object_]  # the neighbourhood's polygons in this frame, in ``poses`` order
     walls_xy: FloatArray  # every obstacle edge seen in the neighbourhood (M, 2, 2), its own first
     obstacles: shapely.MultiLineString  # the same edges as one geometry, for distance queries
+    walls_seen_from_xy: FloatArray  # (M, 2): the origin of the view that saw each edge
     _grown: shapely.Geometry | None = None
 
     @property
@@ -234,7 +239,8 @@ class LocalMap:
         walls_xy = apply_grouped(frames, [kf.walls.reshape(-1, 2) for kf in kfs]).reshape(-1, 2, 2)
         obstacles = _segments_geometry(walls_xy)
         shapely.prepare(obstacles)
-        view = LocalView(keyframe_id, poses, shapes, walls_xy, obstacles)
+        seen_from = np.repeat([(f.x_m, f.y_m) for f in frames], [kf.walls.shape[0] for kf in kfs], axis=0)
+        view = LocalView(keyframe_id, poses, shapes, walls_xy, obstacles, seen_from.reshape(-1, 2))
         self._views[keyframe_id] = view
         return view
 
@@ -308,7 +314,10 @@ class LocalMap:
             # The still-open vertices against those views' walls, moved into this keyframe's frame.
             frames = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses]
             ask = np.flatnonzero(~seen)
-            on_wall[ask] = _near(v[ask], apply_grouped(frames, walls).reshape(-1, 2, 2), p.graph_wall_snap_m)
+            segments = apply_grouped(frames, walls).reshape(-1, 2, 2)
+            seen_from = np.repeat(poses[:, :2], [w.shape[0] // 2 for w in walls], axis=0)
+            shadow = kf.polygon.on_shadow[idx[ask]]
+            on_wall[ask] = _on_wall(v[ask], shadow, segments, seen_from, p.graph_wall_snap_m, p.wall_behind_m)
         kf.close(idx[seen])
         kf.close(idx[on_wall], VertexKind.OBSTACLE)
         return int(np.count_nonzero(seen | on_wall))
@@ -462,9 +471,18 @@ class LocalMap:
         snap = self.params.wall_snap_m
         own_walls = kf.walls
         own = kf.open_frontier_indices()
+        behind = self.params.wall_behind_m
         if own.size:
-            theirs_walls = view.walls_xy[own_walls.shape[0] :]
-            kf.close(own[_near(kf.polygon.vertices_xy[own], theirs_walls, snap)], VertexKind.OBSTACLE)
+            theirs = slice(own_walls.shape[0], None)
+            on = _on_wall(
+                kf.polygon.vertices_xy[own],
+                kf.polygon.on_shadow[own],
+                view.walls_xy[theirs],
+                view.walls_seen_from_xy[theirs],
+                snap,
+                behind,
+            )
+            kf.close(own[on], VertexKind.OBSTACLE)
         if own_walls.shape[0] == 0:
             return
         poses = [pose for k, pose in view.poses.items() if k != kf_id]
@@ -473,7 +491,9 @@ class LocalMap:
         if not any(i.size for i in idx):
             return
         pts = apply_grouped(poses, [other.polygon.vertices_xy[i] for other, i in zip(kfs, idx, strict=True)])
-        _close_where(kfs, idx, _near(pts, own_walls, snap), VertexKind.OBSTACLE)
+        shadow = np.concatenate([other.polygon.on_shadow[i] for other, i in zip(kfs, idx, strict=True)])
+        own_from = np.zeros((own_walls.shape[0], 2))  # seen from this keyframe's origin
+        _close_where(kfs, idx, _on_wall(pts, shadow, own_walls, own_from, snap, behind), VertexKind.OBSTACLE)
 
 
 def _close_where(
@@ -487,15 +507,39 @@ def _close_where(
         start += i.size
 
 
-def _near(points_xy: FloatArray, segments: FloatArray, snap_m: float) -> NDArray[np.bool_]:
-    """Which points lie within ``snap_m`` of any of the segments (M, 2, 2)."""
+def _on_wall(
+    points_xy: FloatArray,
+    on_shadow: NDArray[np.bool_],
+    segments: FloatArray,
+    seen_from_xy: FloatArray,
+    snap_m: float,
+    behind_m: float,
+) -> NDArray[np.bool_]:
+    """Which frontier vertices (``points_xy``) lie on one of the walls (segments (M, 2, 2), each
+    seen from the matching point of ``seen_from_xy``): within ``snap_m`` of it, and, for those on
+    a shadow edge (``on_shadow``), not more than ``behind_m`` behind the face its view saw. A
+    shadow edge's vertex farther behind lies beyond that wall, hidden behind an occluder: a door
+    seen at a shallow angle has its shadow edge run a few tenths of a metre behind the corridor
+    wall's face, and closing those vertices as that wall ended runs `complete` with the room
+    behind the door unseen (apartment seeds 2 and 4 in session 20). Other vertices (a range
+    limit or the field of view's side lying on a wall) snap from either side: drift puts most of
+    them a little behind the face, and asking it of them too cost 10 % of the exploration time."""
     if segments.shape[0] == 0 or points_xy.shape[0] == 0:
         return np.zeros(points_xy.shape[0], dtype=bool)
     # Only the segments whose bounding box comes within the snap of the points' box can be near.
     lo, hi = points_xy.min(axis=0) - snap_m, points_xy.max(axis=0) + snap_m
     seg_lo, seg_hi = segments.min(axis=1), segments.max(axis=1)
-    segments = segments[np.all((seg_hi >= lo) & (seg_lo <= hi), axis=1)]
+    keep = np.all((seg_hi >= lo) & (seg_lo <= hi), axis=1)
+    segments, seen_from_xy = segments[keep], seen_from_xy[keep]
     if segments.shape[0] == 0:
         return np.zeros(points_xy.shape[0], dtype=bool)
-    near: NDArray[np.bool_] = point_segment_distances(points_xy, segments).min(axis=1) < snap_m
-    return near
+    near = point_segment_distances(points_xy, segments) < snap_m  # (N, M)
+    if on_shadow.any():
+        a, along = segments[:, 0], segments[:, 1] - segments[:, 0]
+        normal = np.column_stack((-along[:, 1], along[:, 0])) / np.maximum(np.hypot(*along.T), 1e-12)[:, None]
+        facing = np.sign(np.einsum("md,md->m", seen_from_xy - a, normal))  # the side its view saw
+        shadow_pts = points_xy[on_shadow]
+        offset = np.einsum("nmd,md->nm", shadow_pts[:, None, :] - a[None], normal) * facing[None]
+        near[on_shadow] &= offset >= -behind_m
+    on: NDArray[np.bool_] = np.asarray(near.any(axis=1), dtype=bool)
+    return on
