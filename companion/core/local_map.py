@@ -50,8 +50,9 @@ class MapParams:
     # only views outside the neighbourhood saw that wall closer.
     graph_wall_snap_m: float = 0.15
     # A vertex on an occlusion's shadow edge closes on a wall only on the side that wall was seen
-    # from, or at most this far behind its face (see _on_wall): on session 20's runs 5 cm cost
-    # 4.6 % of the exploration time over seeds 1-5, 0.1 m 0.9 %; both kept apartment's doors open.
+    # from, or at most this far behind its face (see _on_wall). In session 20, 0.1 m cost 0.3 %
+    # of the exploration time on seeds 1-5 and 6-10 and 3.6 % on 11-15 (5 cm: 4.6 % on 1-5);
+    # both kept apartment's doors open.
     wall_behind_m: float = 0.1
     # Without a SLAM back end (no loop closures), a revisited place never joins the neighbourhood
     # and a new view's frontiers there would send the vehicle round the same room for ever: close
