@@ -166,9 +166,13 @@ def _publisher(outputs: Any, drops: Any) -> Any:
 
 def explorer_params(config: Config) -> ExplorerParams:
     """The map and planner tuning a config implies: without a loop-closure source, new views are
-    closed against every view along the pose graph (see MapParams.close_new_through_graph); the
-    setpoint lead bounds the speed."""
+    closed against every view along the pose graph (see MapParams.close_new_through_graph), as
+    deep inside it as the odometry's drift per keyframe requires; the setpoint lead bounds the
+    speed."""
     return ExplorerParams(
-        map=MapParams(close_new_through_graph=config.inputs.loop_closure == "none"),
+        map=MapParams(
+            close_new_through_graph=config.inputs.loop_closure == "none",
+            chain_margin_per_hop_m=config.exploration.odometry_drift_m_per_keyframe,
+        ),
         lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m),
     )

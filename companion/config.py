@@ -50,6 +50,18 @@ class SafetyConfig(_Strict):
 
 class ExplorationConfig(_Strict):
     max_time_s: float = Field(1800.0, gt=0.0, description="vehicle seconds of exploration before landing")
+    odometry_drift_m_per_keyframe: float = Field(
+        0.05,
+        ge=0.0,
+        le=1.0,
+        description=(
+            "how far the odometry may drift between keyframes (about a metre of flight): a view "
+            "many keyframes away along the pose graph closes a frontier only this much deeper per "
+            "keyframe. 0.05 suits odometry that drifts like the thesis's; an estimator with a "
+            "global position (GPS, motion capture, an autopilot's own SITL) can use 0.005, and "
+            "without loop closures must use a small value to finish (see docs/interfaces.md)"
+        ),
+    )
 
 
 class ZenohConfig(_Strict):

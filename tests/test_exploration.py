@@ -81,6 +81,27 @@ def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
     assert r["collisions"] == 0
 
 
+def test_without_loop_closures_an_estimator_that_does_not_drift_ends_the_room_when_configured_so(shipped_maps):
+    """With perfect odometry (an autopilot's SITL, GPS) and no loop closures, the default drift
+    margin (0.05 m per keyframe) keeps a revisited place's old frontiers open and the room ran
+    to its 900 s limit (session 21); the config's drift per keyframe lets them close."""
+    base = SimParams()
+    no_slam = SimParams(base.sensor, base.vehicle, base.drift, SlamParams(enabled=False), base.physics_rate_hz)
+    config = Config.model_validate(
+        {"vehicle": {"mavlink": "udpin:127.0.0.1:14540"}, "exploration": {"odometry_drift_m_per_keyframe": 0.005}}
+    )
+    params = explorer_params(config)
+    assert params.map.chain_margin_per_hop_m == 0.005
+    world = load_world(shipped_maps / "room.geojson")
+    r = run_exploration(
+        world, "polygon", seed=1, noise_scale=0.0, max_time_s=900, sim_params=no_slam, explorer_params=params
+    ).report
+    assert r["loop_closures"] == 0
+    assert r["termination"] == "complete"
+    assert r["coverage"] >= 0.99
+    assert r["collisions"] == 0
+
+
 @pytest.mark.parametrize(("source", "along_graph"), [("none", True), ("zenoh", False)])
 def test_config_without_a_loop_closure_source_closes_views_along_the_graph(source, along_graph):
     config = Config.model_validate(
@@ -90,6 +111,7 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     assert params.map.close_new_through_graph is along_graph
     assert params.planner.close_on_surface is False  # measured: it can end a run with a room unseen
     assert params.lead.max_lead_m == config.vehicle.max_setpoint_lead_m
+    assert params.map.chain_margin_per_hop_m == 0.05  # the thesis's drift unless told otherwise
 
 
 def test_setpoints_never_lead_the_vehicle_by_more_than_the_configured_distance():
