@@ -102,8 +102,18 @@ def test_config_errors_name_the_file_and_the_problem(tmp_path: Path) -> None:
         load_config(missing)
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "absent.yaml")
-    for shipped in Path("config").glob("sitl-*.yaml"):
-        assert load_config(shipped).vehicle.mavlink
+
+
+def test_every_shipped_config_loads_and_keeps_zenoh_on_loopback() -> None:
+    shipped = sorted(Path("config").glob("*.yaml"))
+    assert len(shipped) >= 5  # sitl-px4, sitl-ardupilot, sitl-zenoh, firmware-px4, firmware-ardupilot
+    for path in shipped:
+        config = load_config(path)
+        assert "127.0.0.1" in config.vehicle.mavlink, path
+        if config.zenoh is not None:
+            endpoints = [*config.zenoh.connect, *config.zenoh.listen]
+            assert endpoints and all("127.0.0.1" in e for e in endpoints), path
+            assert config.zenoh.multicast_scouting is False, path
 
 
 class FakeVehicle:
