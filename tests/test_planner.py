@@ -514,3 +514,37 @@ def test_a_goal_on_a_path_at_a_legs_clearance_found_blocked_counts_a_failed_try(
         planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.1, live_obstacles_xy=jamb)
         assert key in planner._cooling
         assert planner.attempts.get(key, 0) == (1 if eased else 0)
+
+
+def test_a_goal_found_blocked_again_from_the_same_spot_counts_a_failed_try():
+    """The first time the newest scan sees a goal's path blocked, it only cools down; found
+    blocked again from the same spot when taken after that, it counts a failed try, so a
+    frontier only the sensor facing it sees blocked is set aside in the end: taken, dropped,
+    and flown away from and back to every 10 s, one held lshape seed 1 (perfect odometry, no
+    loop closures) for 700 s. Found blocked from elsewhere each time, it only cools down."""
+    from companion.core.planner import _Candidate
+
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    open_idx = targetable_indices(kf, 0.3)
+    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    goal_xy = np.array([3.0, 0.0])
+    jamb = np.array([[1.8, 0.1]])  # on the path's first leg from every start below
+
+    def tries_when_dropped_from(xs: list[float]) -> tuple[list[int], FrontierPlanner]:
+        planner = FrontierPlanner(PlannerParams(max_attempts=2, blocked_cooldown_s=5.0))
+        tries = []
+        for i, x in enumerate(xs):  # each after the last one's cooldown
+            t = 100.0 + 10.0 * i
+            candidate = _Candidate(key, goal_xy, 0.0, 0.0, path=goal_xy[None, :].copy())
+            planner._commit(m, kf.keyframe_id, candidate, np.array([x, 0.0]), t)
+            planner.plan(m, kf.keyframe_id, Pose2(x, 0.0, 0.0), t + 0.1, live_obstacles_xy=jamb)
+            assert planner.goal is None or planner.goal.key != key
+            tries.append(planner.attempts.get(key, 0))
+        return tries, planner
+
+    tries, planner = tries_when_dropped_from([0.0, 0.0, 0.0])
+    assert tries == [0, 1, 2]
+    assert key in planner.set_aside
+    tries, planner = tries_when_dropped_from([0.0, 0.5, 1.0])
+    assert tries == [0, 0, 0]
