@@ -182,6 +182,27 @@ def test_explorer_turns_a_loop_closure_into_a_graph_edge():
     assert ex.map.loop_closures == 2
 
 
+def test_a_loop_closure_across_an_estimator_reset_joins_the_keyframes_by_the_measured_transform():
+    """PX4's estimator may jump (a reset, ``reset_counter``) between a place's first visit and
+    the loop closure that recognises it: the keyframes taken before the jump must be re-expressed
+    with the odometry history, or the closure's edge carries the jump (10 m here)."""
+    ex = explorer()
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    for i in range(6):
+        t = float(i)
+        ex.step(Odometry(t, Pose2(1.2 * i, 0.0, 0.0), reset_counter=0), scan(t))
+    ex.step(Odometry(5.05, Pose2(16.0, 0.0, 0.0), reset_counter=1))  # +10 m, the vehicle did not move
+    ex.step(Odometry(6.0, Pose2(17.2, 0.0, 0.0), reset_counter=1), scan(6.0))
+    first, latest = 0, len(ex.map) - 1
+    assert ex.map.keyframes[latest].stamp_s == 6.0
+    ex.add_loop_closure(LoopClosure(0.0, 6.0, Pose2(7.2, 0.1, 0.0)))  # 6 m before the jump, 1.2 after
+    ex.step(Odometry(6.1, Pose2(17.2, 0.0, 0.0), reset_counter=1))
+    edges = [e for e in ex.map.graph.edges if e.kind is EdgeType.LOOP_CLOSURE]
+    assert len(edges) == 1 and (edges[0].from_id, edges[0].to_id) == (first, latest)
+    assert math.isclose(edges[0].from_to.x_m, 7.2, abs_tol=1e-6)
+    assert math.isclose(edges[0].from_to.y_m, 0.1, abs_tol=1e-6)
+
+
 def test_a_scan_newer_than_the_odometry_waits_for_the_pose_at_its_own_stamp():
     """ArduPilot's pose comes in two messages, so a scan can arrive before the odometry for its
     moment: placed by the older pose, a turning vehicle's polygon swings by metres at its far

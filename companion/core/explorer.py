@@ -404,6 +404,10 @@ class Explorer:
         self.anchor = correction.compose(self.anchor)
         self.history.shift(correction)
         self._recent.shift(correction)
+        # The keyframes' estimates too: a loop closure to a place seen before the jump pairs
+        # the keyframe's estimate with the (shifted) history, and would carry the jump.
+        for kf in self.map.keyframes.values():
+            kf.odom_pose = correction.compose(kf.odom_pose)
 
     def _velocity_in_frame(self, odom: Odometry) -> tuple[float, float]:
         """The vehicle's velocity over the last ``velocity_window_s``, in the current keyframe's frame."""

@@ -67,7 +67,7 @@ class Keyframe:
 
     keyframe_id: int
     stamp_s: float
-    odom_pose: Pose2  # the state estimate when it was taken (odometry frame; drifts)
+    odom_pose: Pose2  # the state estimate when it was taken (current odometry frame; drifts)
     polygon: FovPolygon
     kinds: NDArray[np.int8] = field(init=False)
     radius_m: float = field(init=False)
