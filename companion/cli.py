@@ -13,9 +13,13 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
+from companion.core.explorer import ExplorerParams
+from companion.core.local_map import MapParams
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
+from sitl.simulation import SimParams
+from sitl.slam import SlamParams
 from sitl.world import World, load_world
 
 
@@ -60,6 +64,20 @@ def _parser() -> argparse.ArgumentParser:
         metavar="S",
         help="hand the planner each scan and odometry sample S seconds late, as a link does (default 0)",
     )
+    sim.add_argument(
+        "--no-loop-closures",
+        action="store_true",
+        help="no simulated SLAM back end: the map closes new views along the pose graph, as the "
+        "service does with inputs.loop_closure: none",
+    )
+    sim.add_argument(
+        "--odometry-drift-per-keyframe",
+        type=_positive(float),
+        default=0.05,
+        metavar="M",
+        help="the map's drift margin per keyframe along the pose graph, as "
+        "exploration.odometry_drift_m_per_keyframe in a config (default 0.05)",
+    )
     sim.add_argument("--report", type=Path, help="write the JSON report here")
     sim.add_argument("--plots", type=Path, help="write PNG figures into this folder")
     sim.add_argument("--no-baseline", action="store_true", help="with --plots: skip the grid baseline run")
@@ -86,6 +104,12 @@ def _parser() -> argparse.ArgumentParser:
 def _explore(
     world: World, args: argparse.Namespace, planner: str, console: Console, latency_s: float = 0.0
 ) -> RunTrace:
+    # The map's settings as companion.app.explorer_params derives them from a config.
+    map_params = MapParams(
+        close_new_through_graph=args.no_loop_closures, chain_margin_per_hop_m=args.odometry_drift_per_keyframe
+    )
+    sim_params = SimParams(slam=SlamParams(enabled=False)) if args.no_loop_closures else None
+
     def explore(progress: Callable[[float, float], None] | None = None) -> RunTrace:
         return run_exploration(
             world,
@@ -93,6 +117,8 @@ def _explore(
             args.seed,
             args.noise_scale,
             args.max_time,
+            sim_params=sim_params,
+            explorer_params=ExplorerParams(map=map_params),
             progress=progress,
             map_label=str(args.map),
             input_latency_s=latency_s,

@@ -342,6 +342,21 @@ def test_cli_sim_writes_the_report_with_the_documented_fields(small_room, tmp_pa
     assert set(r["step_ms"]) >= {"p50", "p99"}
 
 
+def test_cli_sim_without_loop_closures_flies_as_the_service_does_with_none(shipped_maps, tmp_path):
+    """`companion sim --no-loop-closures` turns the simulated SLAM off and closes views along the
+    graph, and `--odometry-drift-per-keyframe` sets the margin as the config field does: room
+    seed 1 with perfect odometry then ends (at the default margin it ran to its limit)."""
+    out = tmp_path / "report.json"
+    common = ["sim", "--map", str(shipped_maps / "room.geojson"), "--noise-scale", "0", "--quiet"]
+    rc = main([*common, "--no-loop-closures", "--odometry-drift-per-keyframe", "0.005", "--report", str(out)])
+    r = json.loads(out.read_text())
+    assert rc == 0
+    assert r["loop_closures"] == 0
+    assert r["termination"] == "complete" and r["coverage"] >= 0.99
+    main([*common, "--max-time", "120", "--report", str(out)])
+    assert json.loads(out.read_text())["loop_closures"] > 0  # the simulated SLAM by default
+
+
 def test_cli_reports_a_bad_map_without_a_traceback(tmp_path, capsys):
     bad = tmp_path / "bad.geojson"
     bad.write_text("{")
