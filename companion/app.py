@@ -164,15 +164,17 @@ def _publisher(outputs: Any, drops: Any) -> Any:
     return publish
 
 
+def map_params(with_loop_closures: bool, drift_m_per_keyframe: float) -> MapParams:
+    """The map's tuning for the inputs: without a loop-closure source, new views are closed
+    against every view along the pose graph (see MapParams.close_new_through_graph), as deep
+    inside it as the odometry's drift per keyframe requires. (`companion sim` asks it too.)"""
+    return MapParams(close_new_through_graph=not with_loop_closures, chain_margin_per_hop_m=drift_m_per_keyframe)
+
+
 def explorer_params(config: Config) -> ExplorerParams:
-    """The map and planner tuning a config implies: without a loop-closure source, new views are
-    closed against every view along the pose graph (see MapParams.close_new_through_graph), as
-    deep inside it as the odometry's drift per keyframe requires; the setpoint lead bounds the
-    speed."""
+    """The map and planner tuning a config implies (see :func:`map_params`); the setpoint lead
+    bounds the speed."""
     return ExplorerParams(
-        map=MapParams(
-            close_new_through_graph=config.inputs.loop_closure == "none",
-            chain_margin_per_hop_m=config.exploration.odometry_drift_m_per_keyframe,
-        ),
+        map=map_params(config.inputs.loop_closure != "none", config.exploration.odometry_drift_m_per_keyframe),
         lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m),
     )

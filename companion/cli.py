@@ -13,8 +13,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
+from companion.app import map_params
 from companion.core.explorer import ExplorerParams
-from companion.core.local_map import MapParams
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
@@ -104,10 +104,7 @@ def _parser() -> argparse.ArgumentParser:
 def _explore(
     world: World, args: argparse.Namespace, planner: str, console: Console, latency_s: float = 0.0
 ) -> RunTrace:
-    # The map's settings as companion.app.explorer_params derives them from a config.
-    map_params = MapParams(
-        close_new_through_graph=args.no_loop_closures, chain_margin_per_hop_m=args.odometry_drift_per_keyframe
-    )
+    explorer_params = ExplorerParams(map=map_params(not args.no_loop_closures, args.odometry_drift_per_keyframe))
     sim_params = SimParams(slam=SlamParams(enabled=False)) if args.no_loop_closures else None
 
     def explore(progress: Callable[[float, float], None] | None = None) -> RunTrace:
@@ -118,7 +115,7 @@ def _explore(
             args.noise_scale,
             args.max_time,
             sim_params=sim_params,
-            explorer_params=ExplorerParams(map=map_params),
+            explorer_params=explorer_params,
             progress=progress,
             map_label=str(args.map),
             input_latency_s=latency_s,
