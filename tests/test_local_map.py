@@ -275,6 +275,41 @@ def test_a_neighbour_placed_through_a_wall_the_keyframe_saw_neither_closes_nor_i
     )
 
 
+def test_a_view_the_graph_placed_through_a_wall_the_keyframe_saw_does_not_close_its_frontiers():
+    """The same disagreement along the pose graph: keyframe A sees a wall 2 m ahead; C, reached
+    from A only through far-away B, is placed 1.5 m ahead of A facing left, its open view
+    reaching through that wall over A's side frontier. Closing A's frontiers through the graph,
+    with the chain longer than the drift margin covers, C is misplaced and closes nothing (a
+    spiral corridor's views, 50 hops on and 2.6 m off, closed the next corridor's way on as
+    seen). A cap of 5 cm stands for the 1 m that twenty hops reach by default."""
+    wall = DepthScan(0.0, BEARINGS, 2.0 / np.cos(BEARINGS), 5.0)
+
+    def side_vertex_open(misplaced_depth_m: float, cap_m: float = 0.05, no_loop_closures: bool = False) -> bool:
+        params = MapParams(
+            misplaced_depth_m=misplaced_depth_m,
+            misplaced_min_hops=1,
+            chain_max_margin_m=cap_m,
+            close_new_through_graph=no_loop_closures,
+        )
+        m = LocalMap(params)
+        a = m.add_keyframe(0.0, Pose2(), scan_to_polygon(wall))
+        vertex = int(np.argmin(np.hypot(*(a.polygon.vertices_xy - (1.41, 1.41)).T)))
+        assert a.kinds[vertex] == VertexKind.FRONTIER
+        b_pose = Pose2(0.0, -20.0, -math.pi / 2)
+        m.add_keyframe(1.0, b_pose, scan_to_polygon(open_scan(1.0)), (a.keyframe_id, b_pose))
+        c_pose = Pose2(1.5, 0.0, math.pi / 2)
+        m.add_keyframe(2.0, c_pose, scan_to_polygon(open_scan()), (1, b_pose.between(c_pose)))
+        assert m.neighbourhood(a.keyframe_id) == {}
+        m.close_through_graph(a.keyframe_id)
+        return bool(a.kinds[vertex] == VertexKind.FRONTIER)
+
+    assert side_vertex_open(0.3)
+    assert not side_vertex_open(math.inf)  # trusted, the misplaced view closes it
+    assert not side_vertex_open(0.3, cap_m=1.0)  # two hops: the margin covers the drift
+    # Without loop closures every revisit is a long chain: trusted, or exploration never ends.
+    assert not side_vertex_open(0.3, no_loop_closures=True)
+
+
 def test_a_frontier_vertex_on_a_wall_another_view_saw_closes_as_that_wall():
     """A's arc runs along a wall that B (1.5 m ahead) saw 5 cm short of it: those vertices are the
     wall, closed as obstacle, not as seen space; so a gap left open between two of them (a door

@@ -548,3 +548,20 @@ def test_a_goal_found_blocked_again_from_the_same_spot_counts_a_failed_try():
     assert key in planner.set_aside
     tries, planner = tries_when_dropped_from([0.0, 0.5, 1.0])
     assert tries == [0, 0, 0]
+
+
+def test_a_route_that_keeps_getting_shorter_is_progress_one_that_does_not_stalls():
+    """Skipping ahead along a long corridor, the vehicle passes route keyframes without slowing
+    at them, so none counts as reached: each shorter route to the same target is progress, and
+    only ``route_timeout_s`` without any stalls the route (a failed try for its target)."""
+    planner = FrontierPlanner(PlannerParams(route_timeout_s=30.0))
+    route = _Route(list(range(70, 0, -1)), 1)
+    assert not planner._route_stalled(route, 100.0)
+    for k in range(1, 6):  # 100 s of flight, a few keyframes skipped every 20 s
+        del route.keyframes[:5]
+        assert not planner._route_stalled(route, 100.0 + 20.0 * k)
+    assert not planner._route_stalled(route, 229.0)
+    assert planner._route_stalled(route, 231.0)  # 31 s since the last keyframe was passed
+    longer = _Route(list(range(60, 0, -1)), 1)  # found again from elsewhere: no shorter
+    assert planner._route_stalled(longer, 231.0)
+    assert not planner._route_stalled(_Route([5, 4], 4), 231.0)  # another target starts afresh

@@ -285,16 +285,36 @@ class LocalMap:
         if not test.any():
             return 0
         ids, hops, poses = ids[test], hops[test], poses[test]
+        frames = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses]
+        shapes = np.array([self.keyframes[int(k)].polygon.shape for k in ids], dtype=object)
         depth = np.maximum(
             p.closing_depth_m - p.closing_offset_m, np.minimum(p.chain_max_margin_m, p.chain_margin_per_hop_m * hops)
         )
+        # Past the margin's cap the margin no longer covers the drift, and a view so far along
+        # the chain may lie across a wall from where it was taken (a 1.5 m spiral corridor's
+        # views 50 hops on lay 2.6 m off, and closed the next corridor's frontiers as seen):
+        # one that disagrees with the keyframe as a misplaced neighbour does (walls inside the
+        # other's free space) neither closes its frontiers nor lends them its walls. Not
+        # without loop closures: there every revisit is such a chain, and closing through it
+        # is what lets exploration end at all (the trade-off ``close_new_through_graph`` makes).
+        far = np.flatnonzero((hops >= p.misplaced_min_hops) & (p.chain_margin_per_hop_m * hops > p.chain_max_margin_m))
+        if far.size and not p.close_new_through_graph:
+            at = [frames[i] for i in far]
+            walls_far = [self.keyframes[int(ids[i])].walls for i in far]
+            bad = far[self._disagree(keyframe_id, kf.polygon.shape, move_each(at, shapes[far]), at, walls_far)]
+            if bad.size:
+                keep = np.ones(ids.size, dtype=bool)
+                keep[bad] = False
+                ids, hops, poses, shapes, depth = ids[keep], hops[keep], poses[keep], shapes[keep], depth[keep]
+                frames = [f for f, k in zip(frames, keep, strict=True) if k]
+                if ids.size == 0:
+                    return 0
         # Every open vertex and its point just beyond, moved into every view's frame at once.
         v = kf.polygon.vertices_xy[idx]
         pts = np.stack((v, v + p.closing_offset_m * kf.polygon.outward_xy[idx]))  # (2, vertices, 2)
         d = pts[None] - poses[:, None, None, :2]
         c, s = np.cos(poses[:, 2])[:, None, None], np.sin(poses[:, 2])[:, None, None]
         x, y = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]  # (views, 2, vertices)
-        shapes = np.array([self.keyframes[int(k)].polygon.shape for k in ids], dtype=object)
         inside = shapely.contains_xy(shapes[:, None, None], x, y)
         seen = np.zeros(idx.size, dtype=bool)
         for j in np.flatnonzero(inside.any(axis=(1, 2))):  # then the depth, view by view
@@ -313,7 +333,6 @@ class LocalMap:
         on_wall = np.zeros(idx.size, dtype=bool)
         if p.graph_wall_snap_m > 0.0 and not seen.all() and any(w.size for w in walls):
             # The still-open vertices against those views' walls, moved into this keyframe's frame.
-            frames = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses]
             ask = np.flatnonzero(~seen)
             segments = apply_grouped(frames, walls).reshape(-1, 2, 2)
             seen_from = np.repeat(poses[:, :2], [w.shape[0] // 2 for w in walls], axis=0)
@@ -441,25 +460,42 @@ class LocalMap:
         out = np.zeros(len(view.shapes), dtype=bool)
         if far.size == 0:
             return out
-        tol = self.params.misplaced_depth_m
-
-        def probes(walls: FloatArray) -> FloatArray:
-            return np.concatenate((walls[:, 0], walls[:, 1], walls.mean(axis=1)))
-
-        own = self.keyframes[view.keyframe_id].walls
-        if own.shape[0]:
-            pts = probes(own)
-            rows, cols = np.nonzero(shapely.contains_xy(view.shapes[far, None], pts[None, :, 0], pts[None, :, 1]))
-            depth = shapely.distance(shapely.boundary(view.shapes[far[rows]]), shapely.points(pts[cols]))
-            out[far[rows[depth > tol]]] = True
         ids = list(view.poses)
         theirs = [self.keyframes[ids[i]].walls for i in far]
-        if any(w.shape[0] for w in theirs):
-            frames = [view.poses[ids[i]] for i in far]
-            walls = apply_grouped(frames, [w.reshape(-1, 2) for w in theirs]).reshape(-1, 2, 2)
-            pts, who = probes(walls), np.tile(np.repeat(far, [w.shape[0] for w in theirs]), 3)
-            inside = shapely.contains_xy(view.shapes[0], pts[:, 0], pts[:, 1])
-            depth = shapely.distance(shapely.boundary(view.shapes[0]), shapely.points(pts[inside]))
+        frames = [view.poses[ids[i]] for i in far]
+        out[far] = self._disagree(view.keyframe_id, view.shapes[0], view.shapes[far], frames, theirs)
+        return out
+
+    def _disagree(
+        self,
+        keyframe_id: int,
+        own_shape: shapely.Geometry,
+        shapes: NDArray[np.object_],
+        frames: list[Pose2],
+        walls: list[FloatArray],
+    ) -> NDArray[np.bool_]:
+        """Which of the other views (``shapes`` already placed in the keyframe's frame by
+        ``frames``, their ``walls`` in their own frames) disagree with the keyframe by more than
+        ``misplaced_depth_m``: its walls (ends and midpoints) that deep inside theirs, or theirs
+        inside its own polygon ``own_shape``. (Not a deeper tolerance for a longer chain: in a
+        corridor nothing lies deeper inside a view than half the corridor's width.)"""
+        out = np.zeros(len(shapes), dtype=bool)
+        tol = self.params.misplaced_depth_m
+
+        def probes(segments: FloatArray) -> FloatArray:
+            return np.concatenate((segments[:, 0], segments[:, 1], segments.mean(axis=1)))
+
+        own = self.keyframes[keyframe_id].walls
+        if own.shape[0]:
+            pts = probes(own)
+            rows, cols = np.nonzero(shapely.contains_xy(shapes[:, None], pts[None, :, 0], pts[None, :, 1]))
+            depth = shapely.distance(shapely.boundary(shapes[rows]), shapely.points(pts[cols]))
+            out[rows[depth > tol]] = True
+        if any(w.shape[0] for w in walls):
+            placed = apply_grouped(frames, [w.reshape(-1, 2) for w in walls]).reshape(-1, 2, 2)
+            pts, who = probes(placed), np.tile(np.repeat(np.arange(len(walls)), [w.shape[0] for w in walls]), 3)
+            inside = shapely.contains_xy(own_shape, pts[:, 0], pts[:, 1])
+            depth = shapely.distance(shapely.boundary(own_shape), shapely.points(pts[inside]))
             out[who[inside][depth > tol]] = True
         return out
 
