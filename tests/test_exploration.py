@@ -66,6 +66,33 @@ def test_polygon_explorer_finds_the_room_behind_the_door(two_rooms):
     assert max(p.x_m for p in trace.true_path) > 5.5  # it went through the door
 
 
+def test_the_map_frame_does_not_matter_rotated_and_far_from_the_origin(two_rooms, tmp_path):
+    """Nothing assumes walls along the axes or coordinates near zero: the two rooms turned by
+    37 degrees and moved 900 m away are explored through their door just the same."""
+    turn, shift = math.radians(37.0), np.array([812.5, -431.2])
+    c, s = math.cos(turn), math.sin(turn)
+
+    def moved(xy: list[float]) -> list[float]:
+        return [c * xy[0] - s * xy[1] + shift[0], s * xy[0] + c * xy[1] + shift[1]]
+
+    data = json.loads(two_rooms.read_text())
+    for feature in data["features"]:
+        geometry = feature["geometry"]
+        if geometry["type"] == "Point":
+            geometry["coordinates"] = moved(geometry["coordinates"])
+            feature["properties"]["yaw_deg"] += 37.0
+        else:
+            geometry["coordinates"] = [[moved(xy) for xy in ring] for ring in geometry["coordinates"]]
+    path = tmp_path / "turned.geojson"
+    path.write_text(json.dumps(data))
+    trace = run_exploration(load_world(path), "polygon", seed=4, noise_scale=1.0, max_time_s=900)
+    assert trace.report["collisions"] == 0
+    assert trace.report["coverage"] >= 0.99
+    assert trace.report["termination"] == "complete"
+    door_axis = np.array([c, s])  # the rooms' x axis: past the wall at x = 5.2, through the door
+    assert max(float(np.dot([p.x_m, p.y_m] - shift, door_axis)) for p in trace.true_path) > 5.5
+
+
 def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
     """A plain MAVLink vehicle reports no loop closures: closing new views along the pose graph
     lets the room end (not run to the time limit) at full coverage."""
