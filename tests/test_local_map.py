@@ -77,6 +77,24 @@ def test_neighbourhood_holds_only_views_overlapping_the_keyframe(steps):
             assert shape.intersects(moved)
 
 
+def test_the_neighbourhood_reaches_past_a_turn_in_place_that_looked_away():
+    """A looks east; the vehicle backs off and turns round (B1 west, B2 north: short views that
+    overlap neither A's nor the next), then looks east again (C, all over A's view). A
+    walk that stops at the first view not overlapping A never meets C; bridging a few such views
+    in a row, C is A's neighbour (and closes what it sees), B1 and B2 are not."""
+
+    def neighbours_of_a(bridge_hops: int) -> set[int]:
+        m = LocalMap(MapParams(neighbourhood_bridge_hops=bridge_hops))
+        a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+        b1 = add_pose(m, Pose2(-0.4, -0.1, math.pi), a, open_scan(1.0))
+        b2 = add_pose(m, Pose2(-0.5, 0.1, math.pi / 2), b1, open_scan(1.0))
+        add_pose(m, Pose2(-0.3, 0.0, 0.0), b2)
+        return set(m.neighbourhood(a[0]))
+
+    assert neighbours_of_a(0) == set()
+    assert neighbours_of_a(MapParams().neighbourhood_bridge_hops) == {3}
+
+
 def test_far_apart_views_are_not_neighbours():
     m = LocalMap()
     a = add_pose(m, Pose2(0, 0, 0), None)
@@ -87,10 +105,12 @@ def test_far_apart_views_are_not_neighbours():
 
 def chain_around_a_far_view(margin_per_hop_m: float) -> tuple[LocalMap, int]:
     """A looks east; B, far away, does not overlap it; C, reached from A only through B, stands
-    3 m east of A and sees past A's arc."""
+    3 m east of A and sees past A's arc. (The walk does not bridge B here: B stands for a detour
+    longer than ``neighbourhood_bridge_hops``.)"""
     from companion.core.local_map import MapParams
 
-    m = LocalMap(MapParams(chain_margin_per_hop_m=margin_per_hop_m, chain_max_margin_m=5.0))
+    params = MapParams(chain_margin_per_hop_m=margin_per_hop_m, chain_max_margin_m=5.0, neighbourhood_bridge_hops=0)
+    m = LocalMap(params)
     a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
     b = add_pose(m, Pose2(0.0, -20.0, -math.pi / 2), a)
     add_pose(m, Pose2(3.0, 0.0, 0.0), b)
@@ -124,7 +144,7 @@ def test_frontiers_along_a_wall_a_view_beyond_the_neighbourhood_saw_are_closed_t
     wall leaves its range. C, 3 m further along (reached only through far-away B), saw that
     stretch of wall and the room beside it: those vertices are closed, though the space along
     their outward normals lies inside the wall, which no view can reach into."""
-    m = LocalMap()
+    m = LocalMap(MapParams(neighbourhood_bridge_hops=0))  # B stands for a long detour
     a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(along_wall_scan()))
     b_pose = Pose2(0.0, -20.0, -math.pi / 2)
     b = m.add_keyframe(1.0, b_pose, scan_to_polygon(open_scan(1.0)), (a.keyframe_id, b_pose))
@@ -151,7 +171,7 @@ def test_frontiers_on_a_wall_only_a_view_beyond_the_neighbourhood_saw_are_closed
     wall_scan = DepthScan(0.0, BEARINGS, 1.95 / np.cos(BEARINGS), 5.0)  # a wall at x = 4.95 in A's frame
     kinds = []
     for snap_m in (0.0, 0.15):
-        m = LocalMap(MapParams(graph_wall_snap_m=snap_m))
+        m = LocalMap(MapParams(graph_wall_snap_m=snap_m, neighbourhood_bridge_hops=0))  # B: a long detour
         a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
         b = add_pose(m, Pose2(0.0, -20.0, -math.pi / 2), a)
         add_pose(m, Pose2(3.0, 0.0, 0.0), b, wall_scan)
@@ -167,6 +187,33 @@ def test_frontiers_on_a_wall_only_a_view_beyond_the_neighbourhood_saw_are_closed
     assert np.count_nonzero(kinds[0] == VertexKind.FRONTIER) >= 3  # without the snap: left open
     assert not np.any(kinds[1] == VertexKind.FRONTIER)
     assert np.count_nonzero(kinds[1] == VertexKind.OBSTACLE) >= 3  # closed as the wall they lie on
+
+
+def test_a_view_placed_past_the_drift_margins_cap_lends_no_wall_to_close_frontiers_on():
+    """The same wall C saw closes A's arc vertices while the margin covers the chain's drift; past
+    its cap (5 cm here for the default 1 m, two hops) C may lie metres off, and its wall, moved
+    onto a corridor's way on, closed that as a wall (a spiral, `complete` at coverage 0.47).
+    Without loop closures every revisit is such a chain, and its walls still count."""
+    wall_scan = DepthScan(0.0, BEARINGS, 1.95 / np.cos(BEARINGS), 5.0)  # a wall at x = 4.95 in A's frame
+
+    def arc_left_open(cap_m: float, no_loop_closures: bool = False) -> int:
+        params = MapParams(
+            chain_max_margin_m=cap_m, close_new_through_graph=no_loop_closures, neighbourhood_bridge_hops=0
+        )
+        m = LocalMap(params)
+        a = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+        b = add_pose(m, Pose2(0.0, -20.0, -math.pi / 2), a)
+        add_pose(m, Pose2(3.0, 0.0, 0.0), b, wall_scan)
+        kf_a = m.keyframes[a[0]]
+        v = kf_a.polygon.vertices_xy
+        on_wall = (kf_a.kinds == VertexKind.FRONTIER) & (v[:, 0] > 4.85) & (np.abs(v[:, 1]) < 1.0)
+        assert np.count_nonzero(on_wall) >= 3
+        m.close_through_graph(a[0])
+        return int(np.count_nonzero(kf_a.kinds[on_wall] == VertexKind.FRONTIER))
+
+    assert arc_left_open(1.0) == 0
+    assert arc_left_open(0.05) >= 3
+    assert arc_left_open(0.05, no_loop_closures=True) == 0
 
 
 def test_closing_through_the_graph_since_a_keyframe_tests_only_the_views_from_it_on():
@@ -290,6 +337,7 @@ def test_a_view_the_graph_placed_through_a_wall_the_keyframe_saw_does_not_close_
             misplaced_min_hops=1,
             chain_max_margin_m=cap_m,
             close_new_through_graph=no_loop_closures,
+            neighbourhood_bridge_hops=0,  # B stands for a long detour
         )
         m = LocalMap(params)
         a = m.add_keyframe(0.0, Pose2(), scan_to_polygon(wall))

@@ -9,7 +9,7 @@ import shapely
 from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
 from companion.core.frontiers import FrontierKey, targetable_indices
 from companion.core.geometry import Pose2
-from companion.core.local_map import LocalMap
+from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, _Route
 
@@ -241,7 +241,7 @@ def test_a_frontier_a_view_beyond_the_neighbourhood_saw_past_is_not_flown_to():
     neighbourhood. The candidate is checked along the graph before it is taken."""
     scan_5m = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
     scan_1m = DepthScan(0.0, BEARINGS, np.full(64, 1.0), 5.0)
-    m = LocalMap()
+    m = LocalMap(MapParams(neighbourhood_bridge_hops=0))  # B stands for a detour longer than the walk bridges
     a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(scan_5m))
     b = m.add_keyframe(1.0, Pose2(0.0, 20.0, 0.0), scan_to_polygon(scan_1m), (a.keyframe_id, Pose2(0.0, 20.0, 0.0)))
     c_pose_in_b = Pose2(0.0, 20.0, 0.0).between(Pose2(6.0, 0.0, math.pi))

@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 
 from companion.core.errors import GraphError
@@ -34,6 +35,20 @@ def test_walk_does_not_expand_rejected_branches():
     g = chain(5)
     visited = [v.keyframe_id for v in g.walk(0, accept=lambda k, _: k != 2)]
     assert visited == [0, 1]
+
+
+def test_a_level_walk_bridges_a_few_refused_keyframes_in_a_row_and_returns_only_the_accepted():
+    """Keyframes 2-4 (a turn in place looking away) are refused; with a bridge of three the walk
+    goes on through them to 5 and 6, with their true hop counts; with two it stops at 4."""
+    g = chain(8)
+
+    def accept(ids: list[int], poses: list[Pose2]) -> np.ndarray:
+        return np.array([k not in (2, 3, 4) for k in ids], dtype=bool)
+
+    bridged = {v.keyframe_id: v.hops for v in g.walk_levels(0, accept, bridge_hops=3)}
+    assert bridged == {0: 0, 1: 1, 5: 5, 6: 6, 7: 7}
+    assert [v.keyframe_id for v in g.walk_levels(0, accept, bridge_hops=2)] == [0, 1]
+    assert [v.keyframe_id for v in g.walk_levels(0, accept)] == [0, 1]
 
 
 def test_unknown_keyframes_and_bad_edges_raise():

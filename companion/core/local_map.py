@@ -39,6 +39,9 @@ class MapParams:
     misplaced_depth_m: float = 0.3
     misplaced_min_hops: int = 6  # nearer along the graph, drift is too small to place a view so far off
     wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
+    # The neighbourhood walk goes on through this many views in a row that do not overlap the
+    # keyframe: a turn in place leaves views looking away between two that see the same place.
+    neighbourhood_bridge_hops: int = 4
     # Closing against views outside the neighbourhood, reached along the pose graph: the vertex
     # must lie deeper inside the other view the longer the chain (drift accumulates along it),
     # at least as deep as the closing depth beyond the offset.
@@ -329,7 +332,18 @@ class LocalMap:
             hit = np.zeros(ask.shape, dtype=bool)
             hit[ask] = deep
             seen |= hit.any(axis=0)
-        walls = [self.keyframes[int(k)].walls.reshape(-1, 2) for k in ids]
+        # A wall is lent only by a view the margin covers: one placed past its cap may lie 2 m
+        # off, and a spiral corridor's way on closed as the wall of the corridor next to it
+        # (a small view, too small to be found misplaced).
+        lend = (
+            np.ones(ids.size, dtype=bool)
+            if p.close_new_through_graph
+            else (p.chain_margin_per_hop_m * hops <= p.chain_max_margin_m)
+        )
+        walls = [
+            self.keyframes[int(k)].walls.reshape(-1, 2) if ok else np.zeros((0, 2))
+            for k, ok in zip(ids, lend, strict=True)
+        ]
         on_wall = np.zeros(idx.size, dtype=bool)
         if p.graph_wall_snap_m > 0.0 and not seen.all() and any(w.size for w in walls):
             # The still-open vertices against those views' walls, moved into this keyframe's frame.
@@ -385,7 +399,8 @@ class LocalMap:
                 out[rest] = shapely.intersects(shape, move_each([poses[i] for i in rest], shapes))
             return out
 
-        return {v.keyframe_id: (v.pose_in_start, v.hops) for v in self.graph.walk_levels(kf_id, overlaps)[1:]}
+        visits = self.graph.walk_levels(kf_id, overlaps, self.params.neighbourhood_bridge_hops)
+        return {v.keyframe_id: (v.pose_in_start, v.hops) for v in visits[1:]}
 
     def _integrate(self, kf_id: int) -> None:
         """(Re)compute a keyframe's neighbourhood, then close the frontiers it shares."""

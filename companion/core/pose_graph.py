@@ -133,28 +133,42 @@ class PoseGraph:
 
         return self.walk_levels(start_id, each)
 
-    def walk_levels(self, start_id: int, accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]]) -> list[Visit]:
+    def walk_levels(
+        self,
+        start_id: int,
+        accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]],
+        bridge_hops: int = 0,
+    ) -> list[Visit]:
         """:meth:`walk`, with ``accept`` asked once per hop count for every keyframe first met at
         that count (ids and poses in the start's frame, in the walk's order), so it can test them
-        all in one vectorised pass."""
+        all in one vectorised pass. The walk goes on through up to ``bridge_hops`` refused
+        keyframes in a row (not returned): past a turn in place, say, whose views look away."""
         if start_id not in self._adjacency:
             raise GraphError(f"keyframe {start_id} is not in the graph")
         seen = {start_id}
         out = [Visit(start_id, 0, Pose2.identity())]
-        level = out
+        level: list[tuple[Visit, int]] = [(out[0], 0)]  # and the refused keyframes just before it
         while level:
             ids: list[int] = []
             poses: list[Pose2] = []
-            for visit in level:
+            misses: list[int] = []
+            for visit, miss in level:
                 for nbr, rel in self._adjacency[visit.keyframe_id]:
                     if nbr not in seen:
                         seen.add(nbr)
                         ids.append(nbr)
                         poses.append(visit.pose_in_start.compose(rel))
-            hops = level[0].hops + 1
+                        misses.append(miss)
+            hops = level[0][0].hops + 1
             ok = accept(ids, poses) if ids else np.zeros(0, dtype=bool)
-            level = [Visit(k, hops, pose) for k, pose, keep in zip(ids, poses, ok, strict=True) if keep]
-            out.extend(level)
+            level = []
+            for k, pose, keep, miss in zip(ids, poses, ok, misses, strict=True):
+                visit = Visit(k, hops, pose)
+                if keep:
+                    out.append(visit)
+                    level.append((visit, 0))
+                elif miss < bridge_hops:
+                    level.append((visit, miss + 1))
         return out
 
     def order_from(self, start_id: int) -> list[int]:
