@@ -6,13 +6,12 @@ import math
 import numpy as np
 import pytest
 
-from companion.app import explorer_params
+from companion.app import explorer_params, map_params
 from companion.cli import main
 from companion.config import Config
 from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.fov_polygon import PolygonParams, VertexKind
 from companion.core.geometry import Pose2, wrap_angle
-from companion.core.local_map import MapParams
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Mode, PlannerParams
 from companion.core.pose_graph import EdgeType
@@ -98,7 +97,8 @@ def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
     lets the room end (not run to the time limit) at full coverage."""
     base = SimParams()
     no_slam = SimParams(base.sensor, base.vehicle, base.drift, SlamParams(enabled=False), base.physics_rate_hz)
-    params = ExplorerParams(map=MapParams(close_new_through_graph=True))
+    params = ExplorerParams(map=map_params(with_loop_closures=False, drift_m_per_keyframe=0.05))
+    assert params.map.close_new_through_graph and params.map.neighbourhood_bridge_hops == 0
     world = load_world(shipped_maps / "room.geojson")
     r = run_exploration(world, "polygon", seed=1, max_time_s=900, sim_params=no_slam, explorer_params=params).report
     assert r["loop_closures"] == 0
