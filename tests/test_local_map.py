@@ -81,7 +81,7 @@ def test_the_neighbourhood_reaches_past_a_turn_in_place_that_looked_away():
     """A looks east; the vehicle backs off and turns round (B1 west, B2 north: short views that
     overlap neither A's nor the next), then looks east again (C, all over A's view). A
     walk that stops at the first view not overlapping A never meets C; bridging a few such views
-    in a row, C is A's neighbour (and closes what it sees), B1 and B2 are not."""
+    in a row, C is A's neighbour, B1 and B2 are not."""
 
     def neighbours_of_a(bridge_hops: int) -> set[int]:
         m = LocalMap(MapParams(neighbourhood_bridge_hops=bridge_hops))

@@ -300,8 +300,9 @@ class LocalMap:
         # other's free space) neither closes its frontiers nor lends them its walls. Not
         # without loop closures: there every revisit is such a chain, and closing through it
         # is what lets exploration end at all (the trade-off ``close_new_through_graph`` makes).
-        far = np.flatnonzero((hops >= p.misplaced_min_hops) & (p.chain_margin_per_hop_m * hops > p.chain_max_margin_m))
-        if far.size and not p.close_new_through_graph:
+        past_cap = (p.chain_margin_per_hop_m * hops > p.chain_max_margin_m) & (not p.close_new_through_graph)
+        far = np.flatnonzero(past_cap & (hops >= p.misplaced_min_hops))
+        if far.size:
             at = [frames[i] for i in far]
             walls_far = [self.keyframes[int(ids[i])].walls for i in far]
             bad = far[self._disagree(keyframe_id, kf.polygon.shape, move_each(at, shapes[far]), at, walls_far)]
@@ -309,6 +310,7 @@ class LocalMap:
                 keep = np.ones(ids.size, dtype=bool)
                 keep[bad] = False
                 ids, hops, poses, shapes, depth = ids[keep], hops[keep], poses[keep], shapes[keep], depth[keep]
+                past_cap = past_cap[keep]
                 frames = [f for f, k in zip(frames, keep, strict=True) if k]
                 if ids.size == 0:
                     return 0
@@ -335,14 +337,9 @@ class LocalMap:
         # A wall is lent only by a view the margin covers: one placed past its cap may lie 2 m
         # off, and a spiral corridor's way on closed as the wall of the corridor next to it
         # (a small view, too small to be found misplaced).
-        lend = (
-            np.ones(ids.size, dtype=bool)
-            if p.close_new_through_graph
-            else (p.chain_margin_per_hop_m * hops <= p.chain_max_margin_m)
-        )
         walls = [
-            self.keyframes[int(k)].walls.reshape(-1, 2) if ok else np.zeros((0, 2))
-            for k, ok in zip(ids, lend, strict=True)
+            np.zeros((0, 2)) if beyond else self.keyframes[int(k)].walls.reshape(-1, 2)
+            for k, beyond in zip(ids, past_cap, strict=True)
         ]
         on_wall = np.zeros(idx.size, dtype=bool)
         if p.graph_wall_snap_m > 0.0 and not seen.all() and any(w.size for w in walls):

@@ -147,7 +147,7 @@ class PoseGraph:
             raise GraphError(f"keyframe {start_id} is not in the graph")
         seen = {start_id}
         out = [Visit(start_id, 0, Pose2.identity())]
-        level: list[tuple[Visit, int]] = [(out[0], 0)]  # and the refused keyframes just before it
+        level: list[tuple[Visit, int]] = [(out[0], 0)]  # each with the refused keyframes in a row up to it
         while level:
             ids: list[int] = []
             poses: list[Pose2] = []
