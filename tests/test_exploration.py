@@ -278,6 +278,33 @@ def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
     assert ex.relocalized == before
 
 
+@pytest.mark.parametrize(
+    ("measured", "relocalises"),
+    [
+        (Pose2(-2.0, 0.0, 0.0), True),  # behind the place's view, the place ahead in the newest scan
+        (Pose2(0.0, 3.0, 0.0), False),  # beside it: neither view holds the other (a wall between?)
+    ],
+)
+def test_a_loop_closure_relocalises_the_vehicle_only_at_a_place_in_sight(measured, relocalises):
+    """A loop closure can join a keyframe the vehicle cannot see (one in the hall, across the
+    wall of the room the vehicle is in): taken as the vehicle's frame, its next keyframe hangs off
+    the graph by a leg through the wall, every route out is blocked, and the run ends with most of
+    the building unexplored. The closure still joins the graph; it relocalises only when the
+    place's view holds the vehicle or the newest scan's view holds the place."""
+    ex = explorer()
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    for i in range(6):
+        ex.step(Odometry(float(i), Pose2(1.2 * i, 0.0, 0.0)), scan(float(i)))
+    newest = ex.current_id
+    place = next(k for k, kf in ex.map.keyframes.items() if kf.stamp_s == 1.0)
+    ex.step(Odometry(5.5, Pose2(6.0, 0.0, 0.0)))
+    ex._last_mode = Mode.BACKTRACKING
+    assert ex._apply_loop_closure(LoopClosure(1.0, 5.5, measured))
+    assert ex.map.loop_closures == 1
+    assert ex.current_id == (place if relocalises else newest)
+    assert ex.relocalized == int(relocalises)
+
+
 def test_stalled_on_a_route_a_loop_closure_with_no_keyframe_near_its_moment_asks_for_one():
     """A vehicle stalled on a route takes no view, so after a few seconds no loop closure finds a
     keyframe near its current moment to join, and none relocalises it. The first such closure

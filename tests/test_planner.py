@@ -565,3 +565,22 @@ def test_a_route_that_keeps_getting_shorter_is_progress_one_that_does_not_stalls
     longer = _Route(list(range(60, 0, -1)), 1)  # found again from elsewhere: no shorter
     assert planner._route_stalled(longer, 231.0)
     assert not planner._route_stalled(_Route([5, 4], 4), 231.0)  # another target starts afresh
+
+
+def test_a_goal_off_the_heading_is_flown_to_while_its_path_stays_inside_the_sensors_view():
+    """The only frontier lies straight ahead along x and the vehicle faces 0.5 rad to its left.
+    With a 90-degree camera the path stays inside the view (the turn-first limit is the half
+    field of view less its margin): the vehicle flies on, turning as it goes. With a 57-degree
+    camera the same path lies outside the view less its margin: it stops and turns first."""
+    narrow = np.linspace(-0.1, 0.1, 9)
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, narrow, np.full(9, 5.0), 5.0)))
+    vehicle = Pose2(0.0, 0.0, 0.5)
+    p = PlannerParams()
+    for half_fov_rad, turns_first in ((math.pi / 4, False), (0.5, True)):
+        assert (half_fov_rad - p.fov_edge_margin_rad < 0.5) == turns_first
+        target = FrontierPlanner(p).plan(m, kf.keyframe_id, vehicle, 0.0, half_fov_rad=half_fov_rad).target
+        moves_off = math.hypot(target.x_m, target.y_m) > 1.0
+        assert moves_off != turns_first
+        if turns_first:
+            assert abs(target.yaw_rad) < 0.15  # it turns towards the goal ahead

@@ -237,8 +237,9 @@ class Explorer:
         if looking_around:
             decision = self._look_around(odom)
         else:
+            half_fov = None if self._live is None else _half_fov_rad(self._live[2])
             decision = self.planner.plan(
-                self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view, live_surface
+                self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view, live_surface, half_fov
             )
         t = decision.target  # in the current keyframe's frame, before any relocalisation
         x, y = self.anchor.apply_point(t.x_m, t.y_m)
@@ -371,9 +372,28 @@ class Explorer:
         now = self.history.at(newest)
         assert now is not None
         vehicle = current_in_keyframe.compose(pose_then.between(now))
+        if not self._in_sight(keyframe_id, vehicle, now):
+            return
         self.anchor = now.compose(vehicle.inverse())
         self.current_id = keyframe_id
         self.relocalized += 1
+
+    def _in_sight(self, keyframe_id: int, vehicle: Pose2, now: Pose2) -> bool:
+        """Whether the old place and the vehicle (at ``vehicle`` in its frame, ``now`` by odometry)
+        see each other: the place's view holds the vehicle, or the newest scan's holds the place.
+        The keyframe a loop closure joins is the one nearest its moment in time, up to seconds of
+        flight from the place recognised, and may lie out of sight (in the hall, across the wall of
+        the room the vehicle is in): taken as the vehicle's frame, the next keyframe would hang off
+        the graph by a leg through that wall, and every route out be blocked (longhall seed 9
+        ended at coverage 0.55)."""
+        if self.map.keyframes[keyframe_id].polygon.shape.dwithin(shapely.Point(vehicle.x_m, vehicle.y_m), 0.05):
+            return True
+        if self._live is None:
+            return False
+        pose_at_scan, _, newest = self._live
+        place = vehicle.compose(now.between(pose_at_scan)).inverse()  # the place in the scan's frame
+        view = scan_to_polygon(newest, self.params.polygon).shape
+        return bool(view.dwithin(shapely.Point(place.x_m, place.y_m), 0.05))
 
     # -- internals -------------------------------------------------------------------------------
 
@@ -491,3 +511,12 @@ class Explorer:
         self._want_keyframe = False
         self._need_keyframe = False
         return True
+
+
+def _half_fov_rad(scan: DepthScan) -> float:
+    """How far off the sensor's axis a direction stays in the scan's view on both sides (its
+    narrower side, for a view not centred on the axis; 0 for one that does not span the axis)."""
+    b = scan.bearings_rad
+    if b.size == 0:
+        return 0.0
+    return float(max(0.0, min(-float(b[0]), float(b[-1]))))

@@ -51,7 +51,10 @@ class PlannerParams:
     standoff_m: float = 1.0
     min_frontier_size_m: float = 0.3
     max_candidates_checked: int = 24
-    distance_weight_rad_per_m: float = 0.08
+    # A goal's score: its change of heading plus this per metre to it (rapid selection's "least
+    # change of heading", with distance as the tie-break that keeps the tour short). 0.2 in
+    # session 23 (0.08 before): on 21 maps it flew shorter paths and ended sooner.
+    distance_weight_rad_per_m: float = 0.2
     goal_reached_m: float = 0.3
     same_view_rad: float = 0.5  # a goal at a keyframe's origin turned less than this repeats its view
     waypoint_reached_m: float = 0.5
@@ -63,7 +66,13 @@ class PlannerParams:
     max_attempts: int = 2
     cruise_speed_mps: float = 1.5
     goal_timeout_min_s: float = 10.0
-    turn_first_rad: float = 0.35
+    # A goal farther off the heading (or, moving fast, off the motion) than this is turned to
+    # (braked for) before the vehicle moves on: the sensor must see the path it flies. At most
+    # the sensor's half field of view less ``fov_edge_margin_rad`` (the explorer passes it from
+    # the scans): 0.6 rad keeps a path 10 degrees inside a 90-degree camera's view. Against
+    # 0.35 rad, it cut the exploration time 7 % on 12 maps (session 23, seeds 1-3).
+    turn_first_rad: float = 0.6
+    fov_edge_margin_rad: float = 0.15
     shortcut_hops: int = 6
     leg_margin_m: float = 0.05
     route_timeout_s: float = 30.0  # backtracking without reaching a waypoint for this long fails the target
@@ -196,6 +205,7 @@ class FrontierPlanner:
     _graph_checked: dict[int, tuple[int, int]] = field(default_factory=dict)
     _fresh_checks_left: int = 0  # graph checks after a loop closure still allowed in this step
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    _turn_first_rad: float = 0.0  # this step's limit (params', within the sensor's view)
     _progress_target: int | None = None
     _progress_s: float = 0.0
     _progress_hops: int = 0  # fewest route keyframes left to the progress target so far
@@ -225,6 +235,7 @@ class FrontierPlanner:
         velocity_xy: tuple[float, float] | None = None,
         live_view: Callable[[], shapely.Geometry] | None = None,
         live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None,
+        half_fov_rad: float | None = None,
     ) -> Decision:
         """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame).
 
@@ -236,8 +247,14 @@ class FrontierPlanner:
         through free space trust it over older, drifted views where they disagree.
         ``live_surface(points, tol_m)`` says which points (same frame) the newest scan sees as
         surface: a frontier vertex there is a wall, not a frontier (nothing lies beyond it).
+        ``half_fov_rad`` is the sensor's half field of view: a path must lie inside it to be flown
+        without turning first (see ``PlannerParams.turn_first_rad``).
         """
         view = local_map.view(frame_id)
+        self._turn_first_rad = self.params.turn_first_rad
+        if half_fov_rad is not None:
+            inside = half_fov_rad - self.params.fov_edge_margin_rad
+            self._turn_first_rad = max(0.0, min(self._turn_first_rad, inside))
         here = np.array([vehicle.x_m, vehicle.y_m])
         self._live = np.zeros((0, 2)) if live_obstacles_xy is None else live_obstacles_xy
         self._velocity = np.zeros(2) if velocity_xy is None else np.array(velocity_xy, dtype=np.float64)
@@ -404,7 +421,7 @@ class FrontierPlanner:
         """The newest scan sees the leg to ``wp`` blocked (judged once facing it: the sensor looks
         ahead). A leg through free space needs the body radius clear, not the whole margin."""
         travel = float(np.arctan2(*(wp - here)[::-1]))
-        facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self.params.turn_first_rad
+        facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self._turn_first_rad
         if not (facing and self._live.shape[0]):
             return False
         return _segment_clearance(here, wp, self._live) < self._leg_floor(required)
@@ -1062,9 +1079,9 @@ class FrontierPlanner:
         travel = float(np.arctan2(delta[1], delta[0]))
         moving = float(np.arctan2(self._velocity[1], self._velocity[0]))
         sliding = self._speed_mps > self.params.corner_speed_mps and (
-            abs(wrap_angle(travel - moving)) > self.params.turn_first_rad
+            abs(wrap_angle(travel - moving)) > self._turn_first_rad
         )
-        if sliding or abs(wrap_angle(travel - vehicle.yaw_rad)) > self.params.turn_first_rad:
+        if sliding or abs(wrap_angle(travel - vehicle.yaw_rad)) > self._turn_first_rad:
             return Decision(mode, Target(vehicle.x_m, vehicle.y_m, travel), key)
         return Decision(mode, Target(float(goal_xy[0]), float(goal_xy[1]), travel), key)
 
