@@ -13,7 +13,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
-from companion.app import map_params
+from companion.app import map_params, planner_params
 from companion.core.explorer import ExplorerParams
 from companion.errors import CompanionError
 from sitl.errors import SitlError
@@ -104,7 +104,10 @@ def _parser() -> argparse.ArgumentParser:
 def _explore(
     world: World, args: argparse.Namespace, planner: str, console: Console, latency_s: float = 0.0
 ) -> RunTrace:
-    explorer_params = ExplorerParams(map=map_params(not args.no_loop_closures, args.odometry_drift_per_keyframe))
+    closures = not args.no_loop_closures
+    explorer_params = ExplorerParams(
+        map=map_params(closures, args.odometry_drift_per_keyframe), planner=planner_params(closures)
+    )
     sim_params = SimParams(slam=SlamParams(enabled=False)) if args.no_loop_closures else None
 
     def explore(progress: Callable[[float, float], None] | None = None) -> RunTrace:

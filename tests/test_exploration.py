@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.app import explorer_params, map_params
+from companion.app import explorer_params, map_params, planner_params
 from companion.cli import main
 from companion.config import Config
 from companion.core.explorer import Explorer, ExplorerParams
@@ -97,7 +97,7 @@ def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
     lets the room end (not run to the time limit) at full coverage."""
     base = SimParams()
     no_slam = SimParams(base.sensor, base.vehicle, base.drift, SlamParams(enabled=False), base.physics_rate_hz)
-    params = ExplorerParams(map=map_params(with_loop_closures=False, drift_m_per_keyframe=0.05))
+    params = ExplorerParams(map=map_params(False, drift_m_per_keyframe=0.05), planner=planner_params(False))
     assert params.map.close_new_through_graph and params.map.neighbourhood_bridge_hops == 0
     world = load_world(shipped_maps / "room.geojson")
     r = run_exploration(world, "polygon", seed=1, max_time_s=900, sim_params=no_slam, explorer_params=params).report
@@ -137,6 +137,8 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     params = explorer_params(config)
     assert params.map.close_new_through_graph is along_graph
     assert params.planner.close_on_surface is False  # measured: it can end a run with a room unseen
+    # measured: the loop-closure runs' distance weight sends a vehicle without closures back and forth
+    assert (params.planner.distance_weight_rad_per_m < PlannerParams().distance_weight_rad_per_m) is along_graph
     assert params.lead.max_lead_m == config.vehicle.max_setpoint_lead_m
     assert params.map.chain_margin_per_hop_m == 0.05  # the thesis's drift unless told otherwise
 
