@@ -250,12 +250,9 @@ def test_a_scan_newer_than_the_odometry_waits_for_the_pose_at_its_own_stamp():
     assert result.keyframe_added and other_clock.map.keyframes[0].odom_pose == Pose2(0.0, 0.0, 0.0)
 
 
-@pytest.mark.parametrize("mode", [Mode.BACKTRACKING, Mode.EXPLORING])
-def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
-    """Odometry says the vehicle flew 4.8 m east of the keyframe at x = 1.2 m; the SLAM back end
-    recognises that place and measures it 0.3 m to the north as well. Flying back through known
-    space (where the thesis teleported), the vehicle is then placed in that keyframe's frame by
-    the measurement; exploring, it keeps its newest keyframe's frame."""
+def flown_east_then_hovering() -> tuple[Explorer, int | None, int]:
+    """An explorer after six views 1.2 m apart flying east in open space (a 5 m view each), then
+    0.5 s on at x = 6 m; with its newest keyframe and the one taken at t = 1 s (x = 1.2 m)."""
     ex = explorer()
     scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
     for i in range(6):
@@ -263,6 +260,16 @@ def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
     newest = ex.current_id
     place = next(k for k, kf in ex.map.keyframes.items() if kf.stamp_s == 1.0)
     ex.step(Odometry(5.5, Pose2(6.0, 0.0, 0.0)))
+    return ex, newest, place
+
+
+@pytest.mark.parametrize("mode", [Mode.BACKTRACKING, Mode.EXPLORING])
+def test_flying_back_a_fresh_loop_closure_tells_the_vehicle_where_it_is(mode):
+    """Odometry says the vehicle flew 4.8 m east of the keyframe at x = 1.2 m; the SLAM back end
+    recognises that place and measures it 0.3 m to the north as well. Flying back through known
+    space (where the thesis teleported), the vehicle is then placed in that keyframe's frame by
+    the measurement; exploring, it keeps its newest keyframe's frame."""
+    ex, newest, place = flown_east_then_hovering()
     ex._last_mode = mode
     assert ex._apply_loop_closure(LoopClosure(1.0, 5.5, Pose2(4.8, 0.3, 0.0)))
     here = ex.anchor.between(Pose2(6.0, 0.0, 0.0))
@@ -293,13 +300,7 @@ def test_a_loop_closure_relocalises_the_vehicle_only_at_a_place_in_sight(measure
     the graph by a leg through the wall, every route out is blocked, and the run ends with most of
     the building unexplored. The closure still joins the graph; it relocalises only when the
     place's view holds the vehicle or the newest scan's view holds the place."""
-    ex = explorer()
-    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
-    for i in range(6):
-        ex.step(Odometry(float(i), Pose2(1.2 * i, 0.0, 0.0)), scan(float(i)))
-    newest = ex.current_id
-    place = next(k for k, kf in ex.map.keyframes.items() if kf.stamp_s == 1.0)
-    ex.step(Odometry(5.5, Pose2(6.0, 0.0, 0.0)))
+    ex, newest, place = flown_east_then_hovering()
     ex._last_mode = Mode.BACKTRACKING
     assert ex._apply_loop_closure(LoopClosure(1.0, 5.5, measured))
     assert ex.map.loop_closures == 1
