@@ -584,3 +584,23 @@ def test_a_vehicle_started_facing_a_wall_in_a_corner_explores_the_room(tmp_path)
     room = write_map(tmp_path / "corner.geojson", square(0, 0, 8, 6), [square(3.5, 2.5, 4.5, 3.5)], (0.5, 0.5), 225.0)
     r = run_exploration(load_world(room), "polygon", seed=1, noise_scale=1.0, max_time_s=600).report
     assert r["termination"] == "complete" and r["coverage"] >= 0.99 and r["collisions"] == 0
+
+
+def test_a_keyframe_keeps_the_way_flown_from_its_parent():
+    """Between two views the vehicle flew round a corner (east 2 m, north 3.5 m, back west): the
+    odometry edge keeps that way (every 0.5 m, in the parent's frame), so a leg back along the
+    edge can follow it where the straight line is blocked; read from the child, it runs back."""
+    ex = explorer()
+    scan = lambda t: DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0)  # noqa: E731
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), scan(0.0))
+    parent = ex.current_id
+    way = [(1.0, 0.0), (2.0, 0.0), (2.0, 1.5), (2.0, 3.5), (1.0, 3.5)]
+    for i, (x, y) in enumerate(way, start=1):
+        ex.step(Odometry(0.1 * i, Pose2(x, y, 0.0)))
+    assert ex.step(Odometry(0.6, Pose2(-0.5, 3.5, 0.0)), scan(0.6)).keyframe_added
+    child = ex.current_id
+    assert parent is not None and child is not None and child != parent
+    ahead = ex.map.flown_between(parent, child)
+    assert ahead is not None and np.allclose(ahead, way)
+    back = ex.map.flown_between(child, parent)
+    assert back is not None and np.allclose(back, np.array(way[::-1]) - (-0.5, 3.5))

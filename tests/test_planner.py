@@ -4,6 +4,7 @@ import functools
 import math
 
 import numpy as np
+import pytest
 import shapely
 
 from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
@@ -584,3 +585,36 @@ def test_a_goal_off_the_heading_is_flown_to_while_its_path_stays_inside_the_sens
         assert moves_off != turns_first
         if turns_first:
             assert abs(target.yaw_rad) < 0.15  # it turns towards the goal ahead
+
+
+@pytest.mark.parametrize("flown", [True, False])
+def test_a_route_leg_seen_blocked_is_flown_back_the_way_the_vehicle_came(flown):
+    """Keyframe B was taken 3 m north of A, out of its sight: the vehicle flew round the end of a
+    wall between them (x < 1.5 m at y = 1.5 m). Flying back from B to A, the straight leg is seen
+    blocked and B hangs off the graph by that edge alone: with no way round in view, every
+    frontier beyond was set aside in turn while the vehicle hovered (office seed 8 without loop
+    closures, coverage 0.83). The way flown is kept with the edge and flown back instead."""
+    world_a, world_b = Pose2(0.0, 0.0, math.pi), Pose2(0.0, 3.0, 0.0)  # they look away from each other
+    flown_world = np.array([[2.0, 0.5], [2.0, 1.5], [2.0, 2.5]])
+    m = LocalMap()
+    open_scan = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+    a = m.add_keyframe(0.0, world_a, scan_to_polygon(open_scan))
+    b_in_a = world_a.between(world_b)
+    way = world_a.inverse().apply(flown_world) if flown else None
+    b = m.add_keyframe(1.0, world_b, scan_to_polygon(open_scan), (a.keyframe_id, b_in_a), way)
+    b.kinds[b.kinds == VertexKind.FRONTIER] = VertexKind.FREE  # nothing left to explore from B
+    b.version += 1
+    wall = world_b.inverse().apply(np.array([[x, 1.5] for x in np.arange(-3.0, 1.5, 0.05)]))
+    planner = FrontierPlanner()
+    planner.route = _Route([a.keyframe_id], a.keyframe_id)
+    vehicle = Pose2(0.0, 0.0, -math.pi / 2)  # at B, facing A
+    decision = planner.plan(m, b.keyframe_id, vehicle, 100.0, live_obstacles_xy=wall)
+    assert decision.mode is Mode.BACKTRACKING
+    if flown:
+        back = world_b.inverse().apply(flown_world[::-1])
+        assert planner._leg is not None and planner._leg.flown
+        assert np.allclose(planner._leg.points[:-1], back)
+        assert math.isclose(decision.target.yaw_rad, math.atan2(back[0, 1], back[0, 0]), abs_tol=1e-9)
+        assert not planner.attempts and planner.route is not None
+    else:
+        assert {k.keyframe_id for k in planner.attempts} == {a.keyframe_id}  # a failed try for A

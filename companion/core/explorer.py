@@ -42,6 +42,7 @@ class ExplorerParams:
     keyframe_distance_m: float = 1.0
     keyframe_angle_rad: float = 0.5
     backtrack_keyframe_distance_m: float = 3.0  # fewer new views while flying through known space
+    flown_spacing_m: float = 0.5  # the way flown between keyframes is kept at this spacing
     loop_closure_max_gap_s: float = 5.0  # a loop closure needs a keyframe this close in time
     velocity_window_s: float = 0.2  # odometry differenced over this long for the vehicle's velocity
     # Obstacle returns of recent scans stay in the setpoint's lead limit: a door jamb that has
@@ -113,6 +114,12 @@ class OdometryHistory:
     def newest_stamp(self) -> float | None:
         return self._stamps[-1] if self._stamps else None
 
+    def between(self, start_s: float, end_s: float) -> list[Pose2]:
+        """The samples stamped after ``start_s`` and before ``end_s``."""
+        lo = bisect.bisect_right(self._stamps, start_s)
+        hi = bisect.bisect_left(self._stamps, end_s)
+        return self._poses[lo:hi]
+
     def shift(self, correction: Pose2) -> None:
         """Re-express the history after an estimator reset (``new = correction ∘ old``)."""
         self._poses = [correction.compose(p) for p in self._poses]
@@ -168,6 +175,7 @@ class Explorer:
         self.planner = FrontierPlanner(self.params.planner)
         self.current_id: int | None = None
         self.anchor = Pose2.identity()  # current keyframe's pose in the odometry frame
+        self._anchor_stamp_s: float | None = None  # when the vehicle was last at the anchor
         self.history = OdometryHistory()
         self.loop_closures_rejected = 0
         self.relocalized = 0  # times a loop closure relocalised the vehicle (see _relocalize)
@@ -248,6 +256,7 @@ class Explorer:
             rel = self.map.pose_in(self.current_id, decision.relocalize_to)
             self.anchor = self.anchor.compose(rel)
             self.current_id = decision.relocalize_to
+            self._anchor_stamp_s = odom.stamp_s
         if decision.want_keyframe:
             self._want_keyframe = True
         sp = self._within_lead(sp, odom.pose, velocity)
@@ -376,6 +385,7 @@ class Explorer:
             return
         self.anchor = now.compose(vehicle.inverse())
         self.current_id = keyframe_id
+        self._anchor_stamp_s = newest
         self.relocalized += 1
 
     def _in_sight(self, keyframe_id: int, vehicle: Pose2, now: Pose2) -> bool:
@@ -483,6 +493,23 @@ class Explorer:
                 return k
         return near[0][1] if near else None
 
+    def _flown_xy(self, until_s: float, end: Pose2) -> FloatArray:
+        """The way flown from the anchor until ``until_s`` (to ``end``), in the anchor's frame:
+        a point every ``flown_spacing_m``, none that close to either end."""
+        spacing = self.params.flown_spacing_m
+        if self._anchor_stamp_s is None or spacing <= 0.0:
+            return np.zeros((0, 2))
+        last = np.zeros(2)
+        goal = np.array([end.x_m, end.y_m])
+        kept: list[FloatArray] = []
+        for p in self.history.between(self._anchor_stamp_s, until_s):
+            rel = self.anchor.between(p)
+            xy = np.array([rel.x_m, rel.y_m])
+            if np.hypot(*(xy - last)) >= spacing and np.hypot(*(xy - goal)) >= spacing:
+                kept.append(xy)
+                last = xy
+        return np.array(kept) if kept else np.zeros((0, 2))
+
     def _maybe_add_keyframe(self, scan: DepthScan, odom: Odometry) -> bool:
         pose = self.history.at(scan.stamp_s) or odom.pose
         p = self.params
@@ -502,12 +529,14 @@ class Explorer:
         if polygon.shape.is_empty:
             return False
         parent = None if self.current_id is None else (self.current_id, self.anchor.between(pose))
-        kf = self.map.add_keyframe(scan.stamp_s, pose, polygon, parent)
+        flown = None if parent is None else self._flown_xy(scan.stamp_s, parent[1])
+        kf = self.map.add_keyframe(scan.stamp_s, pose, polygon, parent, flown)
         at = bisect.bisect_right(self._keyframe_stamps[0], kf.stamp_s)
         self._keyframe_stamps[0].insert(at, kf.stamp_s)
         self._keyframe_stamps[1].insert(at, kf.keyframe_id)
         self.current_id = kf.keyframe_id
         self.anchor = pose
+        self._anchor_stamp_s = scan.stamp_s
         self._want_keyframe = False
         self._need_keyframe = False
         return True

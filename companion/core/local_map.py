@@ -172,6 +172,9 @@ class LocalMap:
         self.params = params or MapParams()
         self.graph = PoseGraph()
         self.keyframes: dict[int, Keyframe] = {}
+        # (parent, child) -> the way the vehicle flew from the parent to where it took the child,
+        # (K, 2) in the parent's frame, ends left out: an odometry edge is a leg flown once.
+        self._flown: dict[tuple[int, int], FloatArray] = {}
         self._neighbours: dict[int, dict[int, Pose2]] = {}
         self._hops: dict[int, dict[int, int]] = {}  # hops along the path each neighbour was placed by
         self._views: dict[int, LocalView] = {}
@@ -188,9 +191,11 @@ class LocalMap:
         odom_pose: Pose2,
         polygon: FovPolygon,
         parent: tuple[int, Pose2] | None = None,
+        flown_xy: FloatArray | None = None,
     ) -> Keyframe:
         """Add a keyframe, joined by an odometry edge to ``parent = (id, pose of new in parent)``,
-        and close the frontiers its view and its neighbours' views cover."""
+        and close the frontiers its view and its neighbours' views cover. ``flown_xy`` is the way
+        the vehicle flew from the parent (points in its frame, see :meth:`flown_between`)."""
         kf_id = self._next_id
         self._next_id += 1
         kf = Keyframe(kf_id, stamp_s, odom_pose, polygon)
@@ -201,8 +206,22 @@ class LocalMap:
         self._hops[kf_id] = {}
         if parent is not None:
             self.graph.add_edge(parent[0], kf_id, parent[1], EdgeType.ODOMETRY)
+            if flown_xy is not None and flown_xy.shape[0]:
+                self._flown[(parent[0], kf_id)] = np.asarray(flown_xy, dtype=np.float64).reshape(-1, 2)
         self._integrate(kf_id)
         return kf
+
+    def flown_between(self, from_id: int, to_id: int) -> FloatArray | None:
+        """The way flown along the odometry edge between two keyframes, from ``from_id`` towards
+        ``to_id``, in ``from_id``'s frame (None when the edge has none): where a straight leg
+        between them is blocked (one taken out of the other's sight), the vehicle can fly it back."""
+        ahead = self._flown.get((from_id, to_id))
+        if ahead is not None:
+            return ahead
+        back = self._flown.get((to_id, from_id))
+        if back is None:
+            return None
+        return self.pose_in(from_id, to_id).apply(back[::-1])
 
     def add_loop_closure(self, earlier_id: int, later_id: int, earlier_to_later: Pose2) -> None:
         """Join two keyframes by a loop-closure edge and close what their views now share."""

@@ -176,6 +176,7 @@ class _Leg:
     keyframe_id: int
     points: FloatArray
     ends_short: bool = False  # snapped to free space short of the keyframe (taken near a wall)
+    flown: bool = False  # along the way flown between the two keyframes (see LocalMap.flown_between)
 
 
 @dataclass(frozen=True, slots=True)
@@ -816,6 +817,15 @@ class FrontierPlanner:
             if not fresh and self._may_replan(frame_id, nxt, here):  # plan again with the newest scan
                 self._leg = None
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
+            tried = skip or (self._leg is not None and self._leg.flown)
+            flown = None if tried else local_map.flown_between(frame_id, nxt)
+            if flown is not None:
+                # Blocked straight (a keyframe taken out of the other's sight, across a wall from
+                # it): fly back the way the vehicle came. Without it, the only route from here
+                # was blocked and every frontier was set aside in turn while the vehicle hovered.
+                self._leg = _Leg(frame_id, nxt, np.vstack((flown, wp)), flown=True)
+                travel = float(np.arctan2(*(flown[0] - here)[::-1]))
+                return self._fly(vehicle, flown[0], travel, Mode.BACKTRACKING, None)
             aim = self._sidestep(here, wp, required)
             if aim is not None:
                 # Only the line is blocked (a waypoint drifted onto a wall of a narrow corridor,
@@ -951,7 +961,7 @@ class FrontierPlanner:
                 pts.shape[0] == 1 and not leg.ends_short and self._reached(pts[0], here, self.params.corner_reached_m)
             )
             if not stale_end:
-                self._leg = _Leg(frame_id, keyframe_id, pts, ends_short=leg.ends_short)
+                self._leg = _Leg(frame_id, keyframe_id, pts, ends_short=leg.ends_short, flown=leg.flown)
                 return pts, False
         pts = wp[None, :]
         if not self._accessible(view, here, wp, self._leg_required(required)):
