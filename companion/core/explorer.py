@@ -186,6 +186,7 @@ class Explorer:
         self._last_mode = Mode.EXPLORING
         self._pending_closures: list[LoopClosure] = []
         self._live: tuple[Pose2, FloatArray, DepthScan] | None = None  # newest scan: pose, returns, scan
+        self._newest_view_memo: tuple[DepthScan, shapely.Geometry] | None = None  # see _newest_view
         self._recent = RecentReturns(self.params.obstacle_memory_s, self.params.obstacle_memory_m)
         self._travelled_m = 0.0  # odometry path length, to age the recent returns by
         self._obstacles_xy: FloatArray = np.zeros((0, 2))  # recent returns for this step, odometry frame
@@ -234,8 +235,7 @@ class Explorer:
             live = scan_pose.apply(returns)
 
             def live_view() -> shapely.Geometry:  # only built when the planner needs it
-                shape = scan_to_polygon(newest, self.params.polygon).shape
-                return scan_pose.move(shape)
+                return scan_pose.move(self._newest_view(newest))
 
             def live_surface(points_xy: FloatArray, tol_m: float) -> NDArray[np.bool_]:
                 margin = self.params.polygon.frontier_range_tolerance_m
@@ -402,8 +402,13 @@ class Explorer:
             return False
         pose_at_scan, _, newest = self._live
         place = vehicle.compose(now.between(pose_at_scan)).inverse()  # the place in the scan's frame
-        view = scan_to_polygon(newest, self.params.polygon).shape
-        return bool(view.dwithin(shapely.Point(place.x_m, place.y_m), 0.05))
+        return bool(self._newest_view(newest).dwithin(shapely.Point(place.x_m, place.y_m), 0.05))
+
+    def _newest_view(self, scan: DepthScan) -> shapely.Geometry:
+        """The newest scan's field-of-view polygon in its own frame, built once per scan."""
+        if self._newest_view_memo is None or self._newest_view_memo[0] is not scan:
+            self._newest_view_memo = (scan, scan_to_polygon(scan, self.params.polygon).shape)
+        return self._newest_view_memo[1]
 
     # -- internals -------------------------------------------------------------------------------
 

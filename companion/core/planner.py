@@ -817,7 +817,7 @@ class FrontierPlanner:
             if not fresh and self._may_replan(frame_id, nxt, here):  # plan again with the newest scan
                 self._leg = None
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
-            tried = skip or (self._leg is not None and self._leg.flown)
+            tried = skip > 0 or (self._leg is not None and self._leg.flown)  # skipping ahead: no edge
             flown = None if tried else local_map.flown_between(frame_id, nxt)
             if flown is not None:
                 # Blocked straight (a keyframe taken out of the other's sight, across a wall from
