@@ -618,3 +618,29 @@ def test_a_route_leg_seen_blocked_is_flown_back_the_way_the_vehicle_came(flown):
         assert not planner.attempts and planner.route is not None
     else:
         assert {k.keyframe_id for k in planner.attempts} == {a.keyframe_id}  # a failed try for A
+
+
+def test_a_frontier_that_failed_a_try_is_tried_again_only_from_its_own_keyframes_origin():
+    """There its vertex lies where its own scan put it; placed in any other (drifted) frame it
+    may lie in a wall: every later view of corridor seed 5 put a range-end vertex 0.3-0.5 m
+    inside the corridor's wall, took it from there, dropped it, and set it aside at coverage
+    1.000. Untried, the same frontier is taken from anywhere."""
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    keys = [FrontierKey(kf.keyframe_id, int(i)) for i in targetable_indices(kf, PlannerParams().min_frontier_size_m)]
+    assert keys
+    away = Pose2(1.5, 0.0, 0.0)  # inside the keyframe's view, well off its origin
+
+    untried = FrontierPlanner().plan(m, kf.keyframe_id, away, 100.0)
+    assert untried.mode is Mode.EXPLORING and untried.goal in keys
+
+    planner = FrontierPlanner()
+    planner.attempts = {k: 1 for k in keys}
+    from_away = planner.plan(m, kf.keyframe_id, away, 100.0)
+    assert from_away.mode is Mode.BACKTRACKING and planner.route is not None
+    assert planner.route.keyframes == [kf.keyframe_id]  # back to its origin for it
+    assert abs(abs(from_away.target.yaw_rad) - math.pi) < 0.3  # turning back towards it
+
+    at_origin = planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 101.0)
+    assert at_origin.mode is Mode.EXPLORING and at_origin.goal in keys
+    assert not planner.set_aside
