@@ -106,9 +106,11 @@ def load_world(path: str | Path) -> World:
     free = boundary.difference(shapely.union_all(obstacles)) if obstacles else boundary
     if not free.contains(pt):
         raise MapError(f"{p}: start ({pt.x}, {pt.y}) is not in free space (inside an obstacle or outside the boundary)")
+    # Every ring bounds free space: an obstacle's holes too (a wall drawn as one polygon round
+    # the rooms it encloses), or the sensor would see through those walls and the vehicle fly on.
     rings = [boundary.exterior, *boundary.interiors]
     for o in obstacles:
-        rings.append(o.exterior)
+        rings.extend((o.exterior, *o.interiors))
     walls = np.vstack([_ring_segments(r) for r in rings])
     name = str(data.get("name") or p.stem)
     return World(name, boundary, tuple(obstacles), free, Pose2(pt.x, pt.y, math.radians(yaw_deg)), walls)

@@ -87,6 +87,24 @@ def test_boundary_that_is_not_a_polygon_is_refused(tmp_path):
         load_world(p)
 
 
+def test_the_holes_of_an_obstacle_polygon_are_walls_the_sensor_sees(tmp_path):
+    """Walls drawn as one polygon round the rooms they enclose (its holes are the rooms): the
+    rooms are free space, and their walls are walls. Before, only outer rings were walls, so
+    the sensor saw through every such wall and the vehicle flew on through them."""
+    rings = [square(0, 0, 20, 10), square(1, 1, 9, 9), square(11, 1, 19, 9)]
+    geometry = {"type": "Polygon", "coordinates": rings}
+    walls = {"type": "Feature", "properties": {"kind": "obstacle"}, "geometry": geometry}
+    path = write_map(tmp_path / "m.geojson", square(0, 0, 20, 10), [], (5.0, 5.0))
+    data = json.loads(path.read_text())
+    data["features"].insert(1, walls)
+    path.write_text(json.dumps(data))
+    w = load_world(path)
+    assert w.free.area == pytest.approx(2 * 64.0)
+    sensor = DepthSensor(w.walls, SensorParams(range_noise_m=0.0), np.random.default_rng(0))
+    east = sensor.scan(Pose2(5.0, 5.0, 0.0), 0.0)  # the room's east wall is 4 m ahead
+    assert np.allclose(east.ranges_m[len(east.ranges_m) // 2], 4.0, atol=0.02)
+
+
 def test_rays_hit_a_wall_at_the_analytic_distance():
     wall = np.array([[[3.0, -5.0], [3.0, 5.0]]])
     angles = np.array([0.0, math.radians(45), math.radians(80), math.pi])
