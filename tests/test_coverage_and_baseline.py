@@ -60,6 +60,33 @@ def test_grid_baseline_replans_when_braking_left_it_behind_a_wall_end():
     assert ex._path[0] != (2.0, 2.0)
 
 
+def test_grid_baseline_leaves_a_room_by_a_door_too_narrow_for_its_clearance():
+    """A 0.9 m door closes on the 0.1 m grid at the 0.4 m clearance (its jambs' cells leave 0.8 m
+    or less of free cells between them): a baseline that had entered
+    the room before it saw the door's jambs was shut in and ended `complete` at a few per cent of
+    the map (a 60 x 40 m campus: 0.07). Where nothing is reachable at the clearance, it plans at
+    the tight one; with no tight clearance to fall back on, it is shut in."""
+    from sitl.grid_explorer import GridExplorerParams
+
+    def shut_in_room(params: GridExplorerParams) -> GridExplorer:
+        ex = GridExplorer((0.0, 0.0, 8.0, 4.0), params)
+        ex.grid[:] = OCCUPIED
+        i0, i1 = ex._cell(0.0, 0.0)[0], ex._cell(0.0, 4.0)[0]
+        ex.grid[i0:i1, ex._cell(0.0, 0.0)[1] : ex._cell(4.0, 0.0)[1]] = FREE  # the room
+        ex.grid[i0:i1, ex._cell(4.2, 0.0)[1] : ex._cell(5.0, 0.0)[1]] = FREE  # seen through the door
+        ex.grid[i0:i1, ex._cell(5.0, 0.0)[1] : ex._cell(8.0, 0.0)[1]] = UNKNOWN
+        door = slice(ex._cell(0.0, 1.6)[0], ex._cell(0.0, 2.4)[0])
+        ex.grid[door, ex._cell(4.0, 0.0)[1] : ex._cell(4.2, 0.0)[1]] = FREE  # 0.8 m of free cells
+        return ex
+
+    here = Pose2(2.0, 2.0, 0.0)
+    ex = shut_in_room(GridExplorerParams())
+    assert ex._plan(here)
+    assert ex._path[-1][0] > 4.2  # through the door
+    assert ex._clearance_m == ex.params.tight_clearance_m
+    assert not shut_in_room(GridExplorerParams(tight_clearance_m=0.4))._plan(here)
+
+
 def test_grid_baseline_setpoints_go_through_the_same_lead_limit_as_the_products(small_room):
     """The yardstick flies the same vehicle: its setpoints lead by at most the lead limit and stop
     short of what the newest scan shows (it once swung into a pillar at speed on hall seed 2)."""
