@@ -24,9 +24,9 @@ def test_a_frontier_found_out_of_reach_step_after_step_counts_one_try_per_cooldo
     planner = FrontierPlanner(PlannerParams(max_attempts=2, blocked_cooldown_s=5.0))
     key = FrontierKey(7, 3)
     for k in range(30):
-        planner._failed(key, 100.0 + 0.1 * k)
+        planner._failed(key, 100.0 + 0.1 * k, at_origin=True)
     assert planner.attempts[key] == 1 and key not in planner.set_aside
-    planner._failed(key, 105.5)  # tried again after the cooldown, and out of reach again
+    planner._failed(key, 105.5, at_origin=True)  # tried again after the cooldown, and out of reach again
     assert planner.attempts[key] == 2 and key in planner.set_aside
 
 
@@ -546,6 +546,8 @@ def test_a_goal_found_blocked_again_from_the_same_spot_counts_a_failed_try():
 
     tries, planner = tries_when_dropped_from([0.0, 0.0, 0.0])
     assert tries == [0, 1, 2]
+    assert key not in planner.set_aside  # not yet: one last try from its keyframe's origin
+    planner._failed(key, 200.0)
     assert key in planner.set_aside
     tries, planner = tries_when_dropped_from([0.0, 0.5, 1.0])
     assert tries == [0, 0, 0]
@@ -620,27 +622,33 @@ def test_a_route_leg_seen_blocked_is_flown_back_the_way_the_vehicle_came(flown):
         assert {k.keyframe_id for k in planner.attempts} == {a.keyframe_id}  # a failed try for A
 
 
-def test_a_frontier_that_failed_a_try_is_tried_again_only_from_its_own_keyframes_origin():
+def test_a_frontier_that_used_up_its_tries_is_tried_once_more_from_its_own_keyframes_origin():
     """There its vertex lies where its own scan put it; placed in any other (drifted) frame it
     may lie in a wall: every later view of corridor seed 5 put a range-end vertex 0.3-0.5 m
-    inside the corridor's wall, took it from there, dropped it, and set it aside at coverage
-    1.000. Untried, the same frontier is taken from anywhere."""
+    inside the corridor's wall, took it from there, dropped it twice and set it aside at
+    coverage 1.000. So its last try is from its origin (only), and only a failure there sets it
+    aside. A frontier with tries left is taken from anywhere."""
     m = LocalMap()
     kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
     keys = [FrontierKey(kf.keyframe_id, int(i)) for i in targetable_indices(kf, PlannerParams().min_frontier_size_m)]
     assert keys
     away = Pose2(1.5, 0.0, 0.0)  # inside the keyframe's view, well off its origin
 
-    untried = FrontierPlanner().plan(m, kf.keyframe_id, away, 100.0)
-    assert untried.mode is Mode.EXPLORING and untried.goal in keys
+    planner = FrontierPlanner(PlannerParams(max_attempts=2))
+    for k in keys:
+        planner._failed(k, 50.0)  # one try left
+    from_away = planner.plan(m, kf.keyframe_id, away, 100.0)
+    assert from_away.mode is Mode.EXPLORING and from_away.goal in keys
 
-    planner = FrontierPlanner()
-    planner.attempts = {k: 1 for k in keys}
+    planner = FrontierPlanner(PlannerParams(max_attempts=2))
+    for k in keys:
+        planner._failed(k, 50.0)
+        planner._failed(k, 60.0)  # tries used up elsewhere
+    assert not planner.set_aside
     from_away = planner.plan(m, kf.keyframe_id, away, 100.0)
     assert from_away.mode is Mode.BACKTRACKING and planner.route is not None
     assert planner.route.keyframes == [kf.keyframe_id]  # back to its origin for it
-    assert abs(abs(from_away.target.yaw_rad) - math.pi) < 0.3  # turning back towards it
-
     at_origin = planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 0.0), 101.0)
     assert at_origin.mode is Mode.EXPLORING and at_origin.goal in keys
-    assert not planner.set_aside
+    planner._failed(at_origin.goal, 110.0)  # and failed there too: set aside
+    assert at_origin.goal in planner.set_aside

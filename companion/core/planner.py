@@ -14,7 +14,8 @@ A goal point stands off from its frontier vertex into known free space: first on
 normal (the thesis's "normal point"), else back along the ray that observed it. Frontiers out of
 reach even from their own keyframe's origin are approached (as near as the known free space leads,
 for a new view there). Frontiers that stay open after ``max_attempts`` visits, or stay out of reach,
-are set aside so exploration always ends.
+and then after one last try from their own keyframe's origin, are set aside so exploration always
+ends.
 """
 
 from __future__ import annotations
@@ -199,6 +200,7 @@ class FrontierPlanner:
     route: _Route | None = None
     attempts: dict[FrontierKey, int] = field(default_factory=dict)
     set_aside: set[FrontierKey] = field(default_factory=set)
+    _origin_only: set[FrontierKey] = field(default_factory=set)  # its last try: from its keyframe's origin
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
     closed_on_surface: int = 0  # frontiers closed because the newest scan sees a surface right there
@@ -491,10 +493,11 @@ class FrontierPlanner:
             if local_map.keyframes[k.keyframe_id].kinds[k.index] == VertexKind.FRONTIER
         ]
 
-    def _failed(self, key: FrontierKey, stamp_s: float) -> None:
+    def _failed(self, key: FrontierKey, stamp_s: float, at_origin: bool = False) -> None:
         """Count a failed try. Once per cooldown: a goal dropped as blocked is out of the running
         for that long, and finding it so again step after step (from a keyframe's origin, say)
-        is one try, not many: it must not be set aside before it was tried again."""
+        is one try, not many: it must not be set aside before it was tried again.
+        ``at_origin``: the try was made from its keyframe's origin."""
         last = self._failed_s.get(key)
         if last is not None and stamp_s - last < self.params.blocked_cooldown_s:
             return
@@ -502,7 +505,15 @@ class FrontierPlanner:
         n = self.attempts.get(key, 0) + 1
         self.attempts[key] = n
         if n >= self.params.max_attempts:
-            self.set_aside.add(key)
+            # Before it is set aside, one more try from its own keyframe's origin, where its
+            # vertex lies exactly where its scan put it; placed in any other (drifted) frame it
+            # may lie in a wall. (Every later view of corridor seed 5 put a range-end vertex
+            # 0.3-0.5 m inside the corridor's wall, took it from there, dropped it twice and set
+            # it aside at coverage 1.000; from its origin the look closes it.)
+            if at_origin or key in self._origin_only:
+                self.set_aside.add(key)
+            else:
+                self._origin_only.add(key)
 
     # -- rapid selection in the current neighbourhood -------------------------------------------
 
@@ -526,12 +537,9 @@ class FrontierPlanner:
         # A goal dropped as blocked cools down before it is taken again, but not from its own
         # keyframe's origin: that is another way to it, and the only one left when the route
         # led there for it (skipping it there would count a failed try never made). A frontier
-        # that failed a try is tried again only from there, where its vertex lies exactly where
-        # its own scan put it: placed in a drifted frame it may lie in a wall. (A corridor's
-        # range-end vertex placed 0.3-0.5 m inside the wall by every later view was taken from
-        # them, dropped and set aside at coverage 1.000, corridor seed 5.)
+        # that used up its tries elsewhere is tried once more from there only (see _failed).
         skip: dict[int, list[int]] = {}
-        for key in self.set_aside if dense else self.set_aside | self._cooling.keys() | self.attempts.keys():
+        for key in self.set_aside if dense else self.set_aside | self._cooling.keys() | self._origin_only:
             skip.setdefault(key.keyframe_id, []).append(key.index)
         for k, pose in view.poses.items():
             if only_keyframe is not None and k != only_keyframe:
@@ -788,7 +796,7 @@ class FrontierPlanner:
             idx = np.array(self._targets(local_map, frame_id), dtype=np.intp)
             if self._off_surfaces(local_map, frame_id, Pose2.identity(), idx, always=True).size == 0:
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
-            self._fail_keyframe(local_map, frame_id, stamp_s)
+            self._fail_keyframe(local_map, frame_id, stamp_s, at_origin=True)
             self._tried_in_vain = frame_id
             self.route = None
             # Out of reach from here (seen through a door at an angle, say): before leaving, go as
@@ -998,9 +1006,9 @@ class FrontierPlanner:
         """Within ``radius_m`` of a waypoint and slow enough to turn there."""
         return float(np.hypot(*(point - here))) <= radius_m and self._speed_mps <= self.params.corner_speed_mps
 
-    def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int, stamp_s: float) -> None:
+    def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int, stamp_s: float, at_origin: bool = False) -> None:
         for i in targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m):
-            self._failed(FrontierKey(keyframe_id, int(i)), stamp_s)
+            self._failed(FrontierKey(keyframe_id, int(i)), stamp_s, at_origin)
 
     def _targets(self, local_map: LocalMap, keyframe_id: int) -> list[int]:
         """A keyframe's open frontier vertices worth a flight and not set aside."""
