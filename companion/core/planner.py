@@ -641,15 +641,22 @@ class FrontierPlanner:
     def _looked_in(self, local_map: LocalMap, frame_id: int) -> FloatArray:
         """The places goals were reached and looked at, in the current keyframe's frame, with the
         heading they were looked at from (rows x, y, cos, sin; placed along the pose graph, from
-        keyframes at most ``looked_max_hops`` away)."""
+        keyframes at most ``looked_max_hops`` away, and no farther than the map's drift margin per
+        hop keeps within ``looked_radius_m``)."""
         if self.params.looked_radius_m <= 0.0 or not self._looked:
             return np.zeros((0, 4))
+        # Placed along a chain with more drift than the radius, a place looked at is nowhere in
+        # particular: as far as the map's drift margin keeps it within the radius, no farther.
+        max_hops = self.params.looked_max_hops
+        per_hop = local_map.params.chain_margin_per_hop_m
+        if per_hop > 0.0:
+            max_hops = min(max_hops, int(self.params.looked_radius_m / per_hop))
         reach = local_map.graph.reached(frame_id)
         row = {int(k): i for i, k in enumerate(reach.ids)}
         out = []
         for k, places in self._looked.items():
             i = row.get(k)
-            if i is None or reach.hops[i] > self.params.looked_max_hops:
+            if i is None or reach.hops[i] > max_hops:
                 continue
             px, py, pt = (float(c) for c in reach.poses[i])
             at = np.array(places)
