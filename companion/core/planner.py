@@ -214,6 +214,8 @@ class FrontierPlanner:
     _origin_only: set[FrontierKey] = field(default_factory=set)  # its last try: from its keyframe's origin
     # (keyframe, the vertex's position and the heading it was looked at from, in its frame)
     _looked: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
+    # (frame, map size, loop closures, places) -> the places in that frame, see _looked_in
+    _looked_memo: tuple[tuple[int, int, int, int], FloatArray] | None = None
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
     closed_on_surface: int = 0  # frontiers closed because the newest scan sees a surface right there
@@ -651,18 +653,28 @@ class FrontierPlanner:
         per_hop = local_map.params.chain_margin_per_hop_m
         if per_hop > 0.0:
             max_hops = min(max_hops, int(self.params.looked_radius_m / per_hop))
-        reach = local_map.graph.reached(frame_id)
-        row = {int(k): i for i, k in enumerate(reach.ids)}
+        key = (frame_id, len(local_map), local_map.loop_closures, sum(len(v) for v in self._looked.values()))
+        if self._looked_memo is not None and self._looked_memo[0] == key:
+            return self._looked_memo[1]
+        levels = [0]
+
+        def near(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
+            """Every keyframe up to ``max_hops`` hops (the walk asks once per hop count)."""
+            levels[0] += 1
+            return np.full(len(ids), levels[0] <= max_hops, dtype=bool)
+
         out = []
-        for k, places in self._looked.items():
-            i = row.get(k)
-            if i is None or reach.hops[i] > max_hops:
+        for visit in local_map.graph.walk_levels(frame_id, near):
+            places = self._looked.get(visit.keyframe_id)
+            if places is None:
                 continue
-            px, py, pt = (float(c) for c in reach.poses[i])
             at = np.array(places)
-            xy = Pose2(px, py, pt).apply(at[:, :2])
-            out.append(np.column_stack((xy, np.cos(at[:, 2] + pt), np.sin(at[:, 2] + pt))))
-        return np.vstack(out) if out else np.zeros((0, 4))
+            xy = visit.pose_in_start.apply(at[:, :2])
+            yaw = at[:, 2] + visit.pose_in_start.yaw_rad
+            out.append(np.column_stack((xy, np.cos(yaw), np.sin(yaw))))
+        looked = np.vstack(out) if out else np.zeros((0, 4))
+        self._looked_memo = (key, looked)
+        return looked
 
     def _select_local(
         self,
