@@ -573,12 +573,7 @@ class FrontierPlanner:
             if idx.size and looked.shape[0]:
                 # The same frontier again: at a place looked at, facing the same way.
                 vc = pose.apply(kf.polygon.vertices_xy[idx])
-                nc = kf.polygon.outward_xy[idx] @ np.array(
-                    [
-                        [math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)],
-                        [-math.sin(pose.yaw_rad), math.cos(pose.yaw_rad)],
-                    ]
-                )
+                nc = pose.rotate(kf.polygon.outward_xy[idx])
                 near = np.hypot(vc[:, None, 0] - looked[None, :, 0], vc[:, None, 1] - looked[None, :, 1])
                 same_way = nc[:, None, 0] * looked[None, :, 2] + nc[:, None, 1] * looked[None, :, 3] >= math.cos(
                     p.looked_same_way_rad
