@@ -1,7 +1,8 @@
 """The yardstick: a grid-based nearest-frontier explorer with perfect poses (thesis 3.3).
 
 An occupancy grid is built from the scans at the true pose; the goal is the nearest frontier by
-shortest path on the grid (walls inflated by the body radius plus a margin), flown by the same
+shortest path on the grid (walls inflated by the body radius plus a margin; where no frontier is
+reachable so, by a tighter clearance, to frontiers about 1 m long or more), flown by the same
 vehicle with the same sensor and the same turn-then-go rule as the polygon explorer.
 """
 
@@ -180,6 +181,8 @@ class GridExplorer:
         return False
 
     def _plan_at(self, pose: Pose2, frontier: NDArray[np.bool_], clearance_m: float) -> bool:
+        """Wavefront from the vehicle through the cells passable at ``clearance_m`` to the nearest
+        goal cell of ``frontier``; follows it (:meth:`_follow`) and returns True if one is reached."""
         passable = self._passable(pose, clearance_m)
         goals = passable & dilate(frontier, self._goal_reach_cells)
         start = self._cell(pose.x_m, pose.y_m)

@@ -62,10 +62,10 @@ def test_grid_baseline_replans_when_braking_left_it_behind_a_wall_end():
 
 def test_grid_baseline_leaves_a_room_by_a_door_too_narrow_for_its_clearance():
     """A 0.9 m door closes on the 0.1 m grid at the 0.4 m clearance (its jambs' cells leave 0.8 m
-    or less of free cells between them): a baseline that had entered
-    the room before it saw the door's jambs was shut in and ended `complete` at a few per cent of
-    the map (a 60 x 40 m campus: 0.07). Where nothing is reachable at the clearance, it plans at
-    the tight one; with no tight clearance to fall back on, it is shut in."""
+    or less of free cells between them): a baseline that had entered the room before it saw the
+    door's jambs was shut in and ended `complete` at a few per cent of the map (a 60 x 40 m
+    campus: 0.07). Where nothing is reachable at the clearance, it plans at the tight one; with
+    no tight clearance to fall back on, it is shut in."""
     from sitl.grid_explorer import GridExplorerParams
 
     def shut_in_room(params: GridExplorerParams) -> GridExplorer:

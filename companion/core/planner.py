@@ -214,8 +214,9 @@ class FrontierPlanner:
     _origin_only: set[FrontierKey] = field(default_factory=set)  # its last try: from its keyframe's origin
     # (keyframe, the vertex's position and the heading it was looked at from, in its frame)
     _looked: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
-    # (frame, map size, loop closures, places) -> the places in that frame, see _looked_in
-    _looked_memo: tuple[tuple[int, int, int, int], FloatArray] | None = None
+    # (frame, map size, loop closures) -> those places in that frame, see _looked_in; None when
+    # a place was added since
+    _looked_memo: tuple[tuple[int, int, int], FloatArray] | None = None
     blocked_legs: set[tuple[int, int]] = field(default_factory=set)  # (from, to) seen blocked
     closed_on_sight: int = 0  # frontiers closed because the vehicle looked at them from their goal
     closed_on_surface: int = 0  # frontiers closed because the newest scan sees a surface right there
@@ -331,6 +332,7 @@ class FrontierPlanner:
             if not goal.approach:
                 vx, vy = pose.apply_point(*kf.polygon.vertices_xy[goal.key.index])
                 self._looked.setdefault(frame_id, []).append((vx, vy, look))
+                self._looked_memo = None
             return Decision(Mode.EXPLORING, Target(gx, gy, look), goal.key, want_keyframe=True)
         if goal.arrived_s is not None and stamp_s - goal.arrived_s >= self.params.settle_s:
             # Looked at it from its goal and it stays open: the space is seen, the vertex is stale
@@ -648,7 +650,7 @@ class FrontierPlanner:
         per_hop = local_map.params.chain_margin_per_hop_m
         if per_hop > 0.0:
             max_hops = min(max_hops, int(self.params.looked_radius_m / per_hop))
-        key = (frame_id, len(local_map), local_map.loop_closures, sum(len(v) for v in self._looked.values()))
+        key = (frame_id, len(local_map), local_map.loop_closures)
         if self._looked_memo is not None and self._looked_memo[0] == key:
             return self._looked_memo[1]
         levels = [0]
