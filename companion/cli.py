@@ -13,8 +13,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
-from companion.app import map_params, planner_params
-from companion.core.explorer import ExplorerParams
+from companion.app import tuning_for
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
@@ -65,10 +64,19 @@ def _parser() -> argparse.ArgumentParser:
         help="hand the planner each scan and odometry sample S seconds late, as a link does (default 0)",
     )
     sim.add_argument(
+        "--loop-closures",
+        choices=("simulated", "scan-matching", "none"),
+        default="simulated",
+        help="where loop closures come from: the simulated SLAM back end (default; as the service "
+        "with inputs.loop_closure: zenoh), the companion's own matching of its views "
+        "(scan_matching), or nowhere (none: the map closes new views along the pose graph)",
+    )
+    sim.add_argument(
         "--no-loop-closures",
-        action="store_true",
-        help="no simulated SLAM back end: the map closes new views along the pose graph, as the "
-        "service does with inputs.loop_closure: none",
+        dest="loop_closures",
+        action="store_const",
+        const="none",
+        help="the same as --loop-closures none",
     )
     sim.add_argument(
         "--odometry-drift-per-keyframe",
@@ -104,11 +112,9 @@ def _parser() -> argparse.ArgumentParser:
 def _explore(
     world: World, args: argparse.Namespace, planner: str, console: Console, latency_s: float = 0.0
 ) -> RunTrace:
-    closures = not args.no_loop_closures
-    explorer_params = ExplorerParams(
-        map=map_params(closures, args.odometry_drift_per_keyframe), planner=planner_params(closures)
-    )
-    sim_params = SimParams(slam=SlamParams(enabled=False)) if args.no_loop_closures else None
+    source = {"simulated": "back_end", "scan-matching": "scan_matching", "none": "none"}[args.loop_closures]
+    explorer_params = tuning_for(source, args.odometry_drift_per_keyframe)
+    sim_params = None if source == "back_end" else SimParams(slam=SlamParams(enabled=False))
 
     def explore(progress: Callable[[float, float], None] | None = None) -> RunTrace:
         return run_exploration(

@@ -39,7 +39,14 @@ class VehicleConfig(_Strict):
 class InputsConfig(_Strict):
     odometry: Literal["mavlink", "zenoh"] = "mavlink"
     scan: Literal["mavlink", "zenoh"] = "mavlink"
-    loop_closure: Literal["none", "zenoh"] = "none"
+    loop_closure: Literal["none", "zenoh", "scan_matching"] = Field(
+        "none",
+        description=(
+            "where loop closures come from: none, a SLAM back end over zenoh, or scan_matching "
+            "(the companion matches each new view to old ones itself; for drifting odometry "
+            "without a back end, see docs/interfaces.md)"
+        ),
+    )
 
 
 class SafetyConfig(_Strict):

@@ -22,6 +22,7 @@ from companion.core.errors import CoreError
 from companion.core.fov_polygon import PolygonParams, in_view, on_scanned_surface, returns_xy, scan_to_polygon
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
+from companion.core.loop_closing import FoundClosure, LoopClosingParams, ViewMatcher
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
 from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
@@ -66,6 +67,9 @@ class ExplorerParams:
     obstacle_memory_s: float = 60.0
     obstacle_memory_m: float = 1.5
     lead: LeadParams = field(default_factory=LeadParams)  # how far setpoints may lead the vehicle
+    # Loop closures of the companion's own, by matching each new view to old ones (for links
+    # that bring none: MAVLink has no loop-closure message).
+    loop_closing: LoopClosingParams = field(default_factory=LoopClosingParams)
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,6 +189,9 @@ class Explorer:
         self._last_odom: Odometry | None = None
         self._last_mode = Mode.EXPLORING
         self._pending_closures: list[LoopClosure] = []
+        self._view_matcher = ViewMatcher(self.params.loop_closing)
+        self._matched: FoundClosure | None = None  # found by the matcher, joined to the graph next step
+        self.loop_closures_matched = 0  # loop closures found by matching views (see loop_closing)
         self._live: tuple[Pose2, FloatArray, DepthScan] | None = None  # newest scan: pose, returns, scan
         self._newest_view_memo: tuple[DepthScan, shapely.Geometry] | None = None  # see _newest_view
         self._recent = RecentReturns(self.params.obstacle_memory_s, self.params.obstacle_memory_m)
@@ -267,6 +274,10 @@ class Explorer:
         if not added:
             if scan is not None and self._maybe_add_keyframe(scan, odom):
                 added = True
+            elif self._matched is not None:
+                self._add_matched()
+            elif self._view_matcher.busy:
+                self._match_views()
             elif self._pending_closures:
                 self._apply_pending_closures()
         return StepResult(sp, decision.mode, added, decision)
@@ -305,6 +316,7 @@ class Explorer:
         return {
             "keyframes": len(self.map),
             "loop_closures": self.map.loop_closures,
+            "loop_closures_matched": self.loop_closures_matched,
             "frontiers_left": self.map.open_frontier_count(),
             "frontiers_set_aside": len(self.planner.unreachable(self.map)),
             "frontiers_closed_on_sight": self.planner.closed_on_sight,
@@ -544,7 +556,23 @@ class Explorer:
         self._anchor_stamp_s = scan.stamp_s
         self._want_keyframe = False
         self._need_keyframe = False
+        if p.loop_closing.enabled:
+            self._view_matcher.start(kf.keyframe_id)
         return True
+
+    def _match_views(self) -> None:
+        """A step of the search for a loop closure of the companion's own (see loop_closing);
+        spread over steps, so no step holds the control loop up for all of it."""
+        self._matched = self._view_matcher.step(self.map)
+
+    def _add_matched(self) -> None:
+        """Join the matched views by a loop-closure edge (a step of its own: the edge's frontier
+        closing costs as much as a match)."""
+        found = self._matched
+        assert found is not None
+        self._matched = None
+        self.map.add_loop_closure(found.earlier_id, found.later_id, found.earlier_to_later)
+        self.loop_closures_matched += 1
 
 
 def _half_fov_rad(scan: DepthScan) -> float:

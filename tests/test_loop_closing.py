@@ -1,0 +1,157 @@
+"""The companion's own loop closures: scan matching and the search over old keyframes."""
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+
+from companion.core.fov_polygon import scan_to_polygon
+from companion.core.geometry import Pose2
+from companion.core.local_map import LocalMap
+from companion.core.loop_closing import LoopClosingParams, ViewMatcher
+from companion.core.messages import DepthScan
+from companion.core.scan_matching import accept_match, match_to_walls
+from sitl.depth_sensor import SensorParams, cast_rays
+
+
+def walls_of(*segments: tuple[float, float, float, float]) -> np.ndarray:
+    return np.array([[[x0, y0], [x1, y1]] for x0, y0, x1, y1 in segments], dtype=float)
+
+
+def along(walls: np.ndarray, spacing_m: float = 0.1) -> np.ndarray:
+    """Points along each wall, ``spacing_m`` apart."""
+    out = []
+    for (x0, y0), (x1, y1) in walls:
+        n = max(1, int(math.hypot(x1 - x0, y1 - y0) / spacing_m))
+        t = np.arange(n) / n
+        out.append(np.column_stack((x0 + t * (x1 - x0), y0 + t * (y1 - y0))))
+    return np.vstack(out)
+
+
+CORNER = walls_of((0, 0, 4, 0), (0, 0, 0, 3), (4, 0, 4, 1))  # two walls meeting, a third stub
+CORRIDOR = walls_of((-3, 0, 5, 0), (-3, 1.2, 5, 1.2))  # two parallel walls: nothing fixes the x
+ROOM_VIEW = shapely.box(0, 0, 4, 3)  # what a view of CORNER saw free
+
+
+def test_a_view_is_matched_back_from_a_guess_half_a_metre_off():
+    true = Pose2(1.0, 0.5, 0.2)  # the source's frame in the target's
+    source = true.inverse().apply(along(CORNER))
+    aligned = match_to_walls(source, CORNER, Pose2(1.4, 0.2, 0.3))
+    assert aligned is not None
+    source_view = true.inverse().move(ROOM_VIEW)
+    match = accept_match(source, source_view, along(CORNER), ROOM_VIEW, aligned)
+    assert match is not None
+    err = true.between(match.pose)
+    assert math.hypot(err.x_m, err.y_m) < 0.01 and abs(err.yaw_rad) < 0.002
+
+
+def test_a_corridor_fixes_nothing_along_it_and_is_not_taken():
+    true = Pose2(1.0, 0.3, 0.0)
+    seen = walls_of((-1, 0, 3, 0), (-1, 1.2, 3, 1.2))  # a stretch of it, no wall's end
+    source = true.inverse().apply(along(seen))
+    aligned = match_to_walls(source, CORRIDOR, Pose2(1.5, 0.35, 0.05))
+    assert aligned is not None
+    pose, dist, _ = aligned
+    assert np.max(dist) < 0.01  # it fits perfectly, where the guess had it along the corridor ...
+    assert abs(pose.x_m - true.x_m) > 0.3
+    view = shapely.box(-3, 0, 5, 1.2)
+    # ... but slid along the corridor, so the match is refused, not trusted.
+    assert accept_match(source, true.inverse().move(view), along(CORRIDOR), view, aligned) is None
+
+
+def test_a_view_that_sees_a_wall_where_the_other_saw_free_space_is_not_taken():
+    true = Pose2(0.5, 0.5, 0.0)
+    across = walls_of((1.0, 1.5, 3.5, 1.5))  # a wall through the middle of what the target saw free
+    for extra, taken in ((np.zeros((0, 2, 2)), True), (across, False)):
+        source = true.inverse().apply(along(np.concatenate((CORNER, extra))))
+        aligned = match_to_walls(source, CORNER, true)
+        assert aligned is not None
+        source_view = true.inverse().move(shapely.box(0, 0, 4, 1.4))
+        match = accept_match(source, source_view, along(CORNER), ROOM_VIEW, aligned)
+        assert (match is not None) is taken
+
+
+# -- the search over the map's keyframes --------------------------------------------------------
+
+ROOM = walls_of(
+    (0, 0, 8, 0), (8, 0, 8, 6), (8, 6, 0, 6), (0, 6, 0, 0),  # an 8 x 6 m room
+    (5, 2, 6, 2), (6, 2, 6, 3), (6, 3, 5, 3), (5, 3, 5, 2),  # a pillar
+    (0, 4, 2, 4),  # a wall stub
+)  # fmt: skip
+
+
+def scan_at(pose: Pose2, walls: np.ndarray, stamp_s: float) -> DepthScan:
+    sensor = SensorParams()
+    bearings = sensor.bearings_rad()
+    ranges = cast_rays(np.array([pose.x_m, pose.y_m]), bearings + pose.yaw_rad, walls, sensor.max_range_m)
+    return DepthScan(stamp_s, bearings, ranges, sensor.max_range_m)
+
+
+def build_loop(walls: np.ndarray, drift: Pose2, path: list[Pose2]) -> LocalMap:
+    """Keyframes along ``path`` (true poses), joined by odometry edges that are exact except the
+    middle one, which carries ``drift``: the last keyframe revisits the first one's place."""
+    m = LocalMap()
+    prev: tuple[int, Pose2] | None = None
+    for k, true in enumerate(path):
+        polygon = scan_to_polygon(scan_at(true, walls, float(k)))
+        rel = None if prev is None else path[k - 1].between(true)
+        if rel is not None and k == len(path) // 2:
+            rel = rel.compose(drift)
+        parent = None if prev is None else (prev[0], rel)
+        kf = m.add_keyframe(float(k), true, polygon, parent)
+        prev = (kf.keyframe_id, true)
+    return m
+
+
+def search(m: LocalMap, keyframe_id: int, params: LoopClosingParams) -> list:
+    matcher = ViewMatcher(params)
+    matcher.start(keyframe_id)
+    found = []
+    for _ in range(50):
+        if not matcher.busy:
+            break
+        closure = matcher.step(m)
+        if closure is not None:
+            found.append(closure)
+    assert not matcher.busy
+    return found
+
+
+# Round the room: from the pillar's west side facing it, and back to the same place.
+ROUND = [
+    Pose2(3.0, 2.5, 0.0),
+    *[Pose2(3.0 + 0.5 * k, 1.0, 0.0) for k in range(1, 5)],
+    *[Pose2(7.0, 1.0 + 1.0 * k, math.pi / 2) for k in range(1, 4)],
+    *[Pose2(7.0 - 1.0 * k, 4.8, math.pi) for k in range(1, 4)],
+    Pose2(3.5, 3.5, -math.pi / 2),
+    Pose2(3.1, 2.6, 0.05),
+]
+
+
+@pytest.mark.parametrize(
+    "drift", [Pose2(0.0, 0.0, 0.0), Pose2(0.4, -0.3, 0.0), Pose2(0.0, 0.0, 0.08), Pose2(-0.3, 0.4, -0.05)]
+)
+def test_a_place_revisited_after_drift_is_joined_with_the_true_transform(drift):
+    m = build_loop(ROOM, drift, ROUND)
+    last = len(ROUND) - 1
+    assert m.graph.reached(last).hops.max() >= 8
+    found = search(m, last, LoopClosingParams(enabled=True))
+    assert len(found) == 1
+    closure = found[0]
+    assert closure.later_id == last
+    true = ROUND[closure.earlier_id].between(ROUND[last])
+    err = true.between(closure.earlier_to_later)
+    assert math.hypot(err.x_m, err.y_m) < 0.05 and abs(err.yaw_rad) < 0.02
+    guessed = m.graph.relative(closure.earlier_id, last)
+    off = true.between(guessed)
+    assert math.hypot(off.x_m, off.y_m) > 0.3 or abs(off.yaw_rad) > 0.05 or drift == Pose2(0.0, 0.0, 0.0)
+
+
+def test_no_loop_closure_is_made_from_too_far_a_jump_or_too_near_along_the_graph():
+    m = build_loop(ROOM, Pose2(0.4, -0.3, 0.0), ROUND)
+    last = len(ROUND) - 1
+    # The match would move the view ~0.5 m: more than this allows for 12 hops of drift.
+    assert search(m, last, LoopClosingParams(enabled=True, max_correction_m=0.1, max_correction_per_hop_m=0.01)) == []
+    # Too few hops between the two views to look for one at all.
+    assert search(m, last, LoopClosingParams(enabled=True, min_hops=len(ROUND))) == []
