@@ -1,16 +1,20 @@
 """The companion's own loop closures: scan matching and the search over old keyframes."""
 
+import itertools
 import math
 
 import numpy as np
 import pytest
 import shapely
 
+import companion.core.loop_closing as loop_closing
+from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.fov_polygon import scan_to_polygon
 from companion.core.geometry import Pose2
 from companion.core.local_map import LocalMap
 from companion.core.loop_closing import LoopClosingParams, ViewMatcher
-from companion.core.messages import DepthScan
+from companion.core.messages import DepthScan, Odometry
+from companion.core.pose_graph import EdgeType
 from companion.core.scan_matching import accept_match, match_to_walls
 from sitl.depth_sensor import SensorParams, cast_rays
 
@@ -155,3 +159,48 @@ def test_no_loop_closure_is_made_from_too_far_a_jump_or_too_near_along_the_graph
     assert search(m, last, LoopClosingParams(enabled=True, max_correction_m=0.1, max_correction_per_hop_m=0.01)) == []
     # Too few hops between the two views to look for one at all.
     assert search(m, last, LoopClosingParams(enabled=True, min_hops=len(ROUND))) == []
+
+
+def test_the_explorer_joins_a_revisited_place_by_its_own_match_one_match_per_step(monkeypatch):
+    """Fed scans round the room with odometry that jumps 0.4 m midway, the explorer takes
+    keyframes, finds the revisit by matching, and joins it: one match at most per step, and
+    the edge in a step after the one that found it (each costs milliseconds)."""
+
+    calls: list[int] = []
+    real = loop_closing.match_to_walls
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls[-1] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop_closing, "match_to_walls", counted)
+    ex = Explorer(ExplorerParams(look_around_rad=0.0, loop_closing=LoopClosingParams(enabled=True)))
+    drift = Pose2(0.4, -0.3, 0.0)
+    # Round the room in 0.25 m steps between the waypoints, the odometry off by `drift` after halfway.
+    poses: list[Pose2] = []
+    for a, b in itertools.pairwise(ROUND):
+        for t in np.linspace(0.0, 1.0, 5)[:-1]:
+            yaw = a.yaw_rad + t * math.remainder(b.yaw_rad - a.yaw_rad, 2 * math.pi)
+            poses.append(Pose2(a.x_m + t * (b.x_m - a.x_m), a.y_m + t * (b.y_m - a.y_m), yaw))
+    poses += [ROUND[-1]] * 40  # then hover there while the matching runs
+    closures_at: list[int] = []
+    matched_at: list[int] = []
+    for k, true in enumerate(poses):
+        odom = true if k < len(poses) // 3 else Pose2.identity().compose(drift).compose(true)
+        calls.append(0)
+        before = ex.map.loop_closures
+        had = ex._matched is not None
+        ex.step(Odometry(0.1 * k, odom), scan_at(true, ROOM, 0.1 * k))
+        if ex.map.loop_closures > before:
+            closures_at.append(k)
+            assert had  # found in an earlier step, joined in this one
+        if ex._matched is not None:
+            matched_at.append(k)
+    assert max(calls) <= 1
+    assert ex.loop_closures_matched >= 1 and ex.map.loop_closures == ex.loop_closures_matched
+    assert all(c - 1 in matched_at for c in closures_at)
+    for edge in ex.map.graph.edges:  # every edge it made is the true transform between the views
+        if edge.kind is EdgeType.LOOP_CLOSURE:
+            a, b = (round(ex.map.keyframes[i].stamp_s / 0.1) for i in (edge.from_id, edge.to_id))
+            err = poses[a].between(poses[b]).between(edge.from_to)
+            assert math.hypot(err.x_m, err.y_m) < 0.05 and abs(err.yaw_rad) < 0.02

@@ -40,6 +40,8 @@ class LoopClosingParams:
     # walls, and turned this far (see ViewMatcher).
     ambiguity_shift_m: float = 0.7
     ambiguity_turn_rad: float = 0.25
+    same_pose_m: float = 0.1  # a restart that comes back this near (and turned this little) agrees
+    same_pose_rad: float = 0.03
     match: ScanMatchParams = field(default_factory=ScanMatchParams)
 
 
@@ -149,7 +151,7 @@ class ViewMatcher:
         # views fit as well close to where odometry puts them, the farther match is not unique.
         narrow = None if self._restarts else replace(self.params.match, start_gate_m=self.params.match.final_gate_m)
         other = self._match(local_map, candidate, guess, narrow)
-        if other is not None and not _same_pose(other.earlier_to_later, found.earlier_to_later):
+        if other is not None and not _same_pose(other.earlier_to_later, found.earlier_to_later, self.params):
             self._found = None  # ambiguous: on to the next candidate
             return None
         if self._restarts:
@@ -196,9 +198,9 @@ def _restart_guesses(found: FoundClosure, shift_m: float, turn_rad: float) -> li
     return out
 
 
-def _same_pose(a: Pose2, b: Pose2) -> bool:
+def _same_pose(a: Pose2, b: Pose2, params: LoopClosingParams) -> bool:
     rel = a.between(b)
-    return math.hypot(rel.x_m, rel.y_m) <= 0.1 and abs(rel.yaw_rad) <= 0.03
+    return math.hypot(rel.x_m, rel.y_m) <= params.same_pose_m and abs(rel.yaw_rad) <= params.same_pose_rad
 
 
 def _obstacle_points(kf: Keyframe, spacing_m: float) -> FloatArray:
