@@ -15,7 +15,7 @@ from companion.core.local_map import LocalMap
 from companion.core.loop_closing import LoopClosingParams, ViewMatcher
 from companion.core.messages import DepthScan, Odometry
 from companion.core.pose_graph import EdgeType
-from companion.core.scan_matching import accept_match, match_to_walls
+from companion.core.scan_matching import ScanMatch, accept_match, match_to_walls
 from sitl.depth_sensor import SensorParams, cast_rays
 
 
@@ -204,3 +204,32 @@ def test_the_explorer_joins_a_revisited_place_by_its_own_match_one_match_per_ste
             a, b = (round(ex.map.keyframes[i].stamp_s / 0.1) for i in (edge.from_id, edge.to_id))
             err = poses[a].between(poses[b]).between(edge.from_to)
             assert math.hypot(err.x_m, err.y_m) < 0.05 and abs(err.yaw_rad) < 0.02
+
+
+@pytest.mark.parametrize(("elsewhere_at", "taken"), [(None, True), (2, False), (7, False)])
+def test_a_match_that_a_restart_finds_elsewhere_as_well_is_not_taken(monkeypatch, elsewhere_at, taken):
+    """The ambiguity test's logic, with the matching stubbed: every match lands on the same pose,
+    except (when ``elsewhere_at`` is set) that call, which lands a metre along: then the views fit
+    two places and no loop closure is made. Call 0 is the match, 1-4 the restarts shifted along
+    and across the walls, 5-6 those turned, 7 the one from the graph's guess."""
+    m = build_loop(ROOM, Pose2(0.4, -0.3, 0.0), ROUND)
+    last = len(ROUND) - 1
+    here = ROUND[0].between(ROUND[last])
+    calls = []
+
+    def aligned(points, walls, guess, params=None):  # type: ignore[no-untyped-def]
+        calls.append(guess)
+        pose = here if len(calls) - 1 != elsewhere_at else here.compose(Pose2(1.0, 0.0, 0.0))
+        return pose, np.zeros(len(points)), np.tile([1.0, 0.0], (len(points), 1))
+
+    def accepted(source, source_view, target, target_view, result, params=None):  # type: ignore[no-untyped-def]
+        return ScanMatch(result[0], 30, 0.01, 0.4, (0.0, 1.0))
+
+    monkeypatch.setattr(loop_closing, "match_to_walls", aligned)
+    monkeypatch.setattr(loop_closing, "accept_match", accepted)
+    params = LoopClosingParams(enabled=True, max_candidates=1)
+    found = search(m, last, params)
+    assert len(calls) == (8 if elsewhere_at is None else elsewhere_at + 1)  # it stops at the first disagreement
+    assert (len(found) == 1) is taken
+    if taken:
+        assert found[0].earlier_to_later == here
