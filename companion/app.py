@@ -12,7 +12,7 @@ import logging
 import signal
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from companion.config import Config
 from companion.core.explorer import ExplorerParams
@@ -193,7 +193,10 @@ def planner_params(with_loop_closures: bool) -> PlannerParams:
     return PlannerParams(distance_weight_rad_per_m=0.08)
 
 
-def tuning_for(loop_closures: str, drift_m_per_keyframe: float) -> ExplorerParams:
+LoopClosureSource = Literal["back_end", "scan_matching", "none"]
+
+
+def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) -> ExplorerParams:
     """The explorer's tuning for where loop closures come from: ``back_end`` (a SLAM back end:
     Zenoh, or the simulator's), ``scan_matching`` (the companion matches its own views, see
     companion.core.loop_closing) or ``none``.
@@ -218,6 +221,6 @@ def tuning_for(loop_closures: str, drift_m_per_keyframe: float) -> ExplorerParam
 
 def explorer_params(config: Config) -> ExplorerParams:
     """The tuning a config implies (see :func:`tuning_for`); the setpoint lead bounds the speed."""
-    source = {"none": "none", "zenoh": "back_end", "scan_matching": "scan_matching"}[config.inputs.loop_closure]
+    source: LoopClosureSource = "back_end" if config.inputs.loop_closure == "zenoh" else config.inputs.loop_closure
     params = tuning_for(source, config.exploration.odometry_drift_m_per_keyframe)
     return replace(params, lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m))

@@ -13,7 +13,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
-from companion.app import tuning_for
+from companion.app import LoopClosureSource, tuning_for
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
@@ -112,7 +112,8 @@ def _parser() -> argparse.ArgumentParser:
 def _explore(
     world: World, args: argparse.Namespace, planner: str, console: Console, latency_s: float = 0.0
 ) -> RunTrace:
-    source = {"simulated": "back_end", "scan-matching": "scan_matching", "none": "none"}[args.loop_closures]
+    sources: dict[str, LoopClosureSource] = {"simulated": "back_end", "scan-matching": "scan_matching", "none": "none"}
+    source = sources[args.loop_closures]
     explorer_params = tuning_for(source, args.odometry_drift_per_keyframe)
     sim_params = None if source == "back_end" else SimParams(slam=SlamParams(enabled=False))
 

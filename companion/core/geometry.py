@@ -115,14 +115,20 @@ def move_each(poses: list[Pose2], geometries: NDArray[np.object_]) -> NDArray[np
     return moved
 
 
-def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
-    """(N, M) distances from N points to M segments given as (M, 2, 2)."""
+def closest_on_segments(points_xy: FloatArray, segments: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """For N points and M segments given as (M, 2, 2): the (N, M, 2) closest point of each
+    segment to each point, and where along the segment it lies, (N, M) in [0, 1]."""
     a = segments[None, :, 0, :]
     ab = segments[None, :, 1, :] - a
     ap = points_xy[:, None, :] - a
     denom = np.maximum(np.einsum("nmk,nmk->nm", ab, ab), 1e-12)
     t = np.clip(np.einsum("nmk,nmk->nm", ap, ab) / denom, 0.0, 1.0)
-    closest = a + t[..., None] * ab
+    return np.asarray(a + t[..., None] * ab, dtype=np.float64), np.asarray(t, dtype=np.float64)
+
+
+def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
+    """(N, M) distances from N points to M segments given as (M, 2, 2)."""
+    closest, _ = closest_on_segments(points_xy, segments)
     return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)
 
 

@@ -144,7 +144,7 @@ class ViewMatcher:
 
     def _restart(self, local_map: LocalMap) -> FoundClosure | None:
         found = self._found
-        assert found is not None and self._candidates is not None
+        assert found is not None
         guess = self._restarts.pop(0)
         candidate = Candidate(found.earlier_id, guess, 0)
         # From the graph's own guess, pairing only returns near the walls they fit there: if the

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from companion.core.geometry import FloatArray, Pose2
+from companion.core.geometry import FloatArray, Pose2, closest_on_segments
 
 
 @dataclass(frozen=True, slots=True)
@@ -134,11 +134,7 @@ def _contradicted(points_xy: FloatArray, view: shapely.Geometry, p: ScanMatchPar
 def _nearest_on_walls(points_xy: FloatArray, walls: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Each point's distance to its nearest wall, the nearest point on it, and the wall's unit
     normal (the direction from that point when it is a wall's end: the residual is a distance)."""
-    a = walls[None, :, 0, :]
-    ab = walls[None, :, 1, :] - a
-    denom = np.maximum(np.einsum("nmk,nmk->nm", ab, ab), 1e-12)
-    t = np.clip(np.einsum("nmk,nmk->nm", points_xy[:, None, :] - a, ab) / denom, 0.0, 1.0)
-    closest_all = a + t[..., None] * ab
+    closest_all, t = closest_on_segments(points_xy, walls)
     d_all = np.linalg.norm(points_xy[:, None, :] - closest_all, axis=2)
     j = np.argmin(d_all, axis=1)
     rows = np.arange(points_xy.shape[0])
