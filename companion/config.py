@@ -69,6 +69,15 @@ class ExplorationConfig(_Strict):
             "without loop closures must use a small value to finish (see docs/interfaces.md)"
         ),
     )
+    match_odometry_edges: bool | None = Field(
+        None,
+        description=(
+            "correct each keyframe's odometry edge by matching its view's walls to the previous "
+            "view's (companion.core.odometry_matching): the walls fix what they can, the odometry "
+            "the rest (along a corridor). Unset: on with a SLAM back end (inputs.loop_closure: "
+            "zenoh), off otherwise, as measured (docs/benchmarks.md, session 27)"
+        ),
+    )
 
 
 class ZenohConfig(_Strict):

@@ -89,6 +89,7 @@ class GridPolicy:
             "keyframes": 0,
             "loop_closures": 0,
             "loop_closures_matched": 0,
+            "odometry_edges_matched": 0,
             "frontiers_left": int(self.explorer.frontier_cells().sum()),
             "frontiers_set_aside": 0,
             "frontiers_closed_on_sight": 0,

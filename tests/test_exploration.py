@@ -148,6 +148,11 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     assert (params.planner.distance_weight_rad_per_m < PlannerParams().distance_weight_rad_per_m) is along_graph
     assert params.lead.max_lead_m == config.vehicle.max_setpoint_lead_m
     assert params.map.chain_margin_per_hop_m == 0.05  # the thesis's drift unless told otherwise
+    # Odometry edges matched with a back end only, as measured, unless the config says:
+    assert params.odometry_matching.enabled is (source == "zenoh")
+    for told in (True, False):
+        update = {"exploration": config.exploration.model_copy(update={"match_odometry_edges": told})}
+        assert explorer_params(config.model_copy(update=update)).odometry_matching.enabled is told
 
 
 def test_setpoints_never_lead_the_vehicle_by_more_than_the_configured_distance():
@@ -404,6 +409,8 @@ def test_cli_sim_writes_the_report_with_the_documented_fields(small_room, tmp_pa
     ):
         assert key in r
     assert set(r["step_ms"]) >= {"p50", "p99"}
+    # Keyframe edges corrected by matching each view to the previous one's (not the first's).
+    assert 0 < r["odometry_edges_matched"] < r["keyframes"]
 
 
 def test_cli_sim_without_loop_closures_flies_as_the_service_does_with_none(shipped_maps, tmp_path):

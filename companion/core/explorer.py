@@ -19,11 +19,19 @@ import shapely
 from numpy.typing import NDArray
 
 from companion.core.errors import CoreError
-from companion.core.fov_polygon import PolygonParams, in_view, on_scanned_surface, returns_xy, scan_to_polygon
+from companion.core.fov_polygon import (
+    FovPolygon,
+    PolygonParams,
+    in_view,
+    on_scanned_surface,
+    returns_xy,
+    scan_to_polygon,
+)
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.loop_closing import FoundClosure, LoopClosingParams, ViewMatcher
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
+from companion.core.odometry_matching import OdometryMatchingParams, match_odometry_edge
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
 from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
 
@@ -70,6 +78,8 @@ class ExplorerParams:
     # Loop closures of the companion's own, by matching each new view to old ones (for links
     # that bring none: MAVLink has no loop-closure message).
     loop_closing: LoopClosingParams = field(default_factory=LoopClosingParams)
+    # Each odometry edge corrected by matching the new view's walls to its parent's.
+    odometry_matching: OdometryMatchingParams = field(default_factory=OdometryMatchingParams)
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,6 +202,7 @@ class Explorer:
         self._view_matcher = ViewMatcher(self.params.loop_closing)
         self._matched: FoundClosure | None = None  # found by the matcher, joined to the graph next step
         self.loop_closures_matched = 0  # loop closures found by matching views (see loop_closing)
+        self.odometry_edges_matched = 0  # odometry edges corrected by matching (see odometry_matching)
         self._live: tuple[Pose2, FloatArray, DepthScan] | None = None  # newest scan: pose, returns, scan
         self._newest_view_memo: tuple[DepthScan, shapely.Geometry] | None = None  # see _newest_view
         self._recent = RecentReturns(self.params.obstacle_memory_s, self.params.obstacle_memory_m)
@@ -317,6 +328,7 @@ class Explorer:
             "keyframes": len(self.map),
             "loop_closures": self.map.loop_closures,
             "loop_closures_matched": self.loop_closures_matched,
+            "odometry_edges_matched": self.odometry_edges_matched,
             "frontiers_left": self.map.open_frontier_count(),
             "frontiers_set_aside": len(self.planner.unreachable(self.map)),
             "frontiers_closed_on_sight": self.planner.closed_on_sight,
@@ -545,8 +557,12 @@ class Explorer:
         polygon = scan_to_polygon(scan, p.polygon)
         if polygon.shape.is_empty:
             return False
-        parent = None if self.current_id is None else (self.current_id, self.anchor.between(pose))
-        flown = None if parent is None else self._flown_xy(scan.stamp_s, parent[1])
+        parent, flown = None, None
+        if self.current_id is not None:
+            guess = self.anchor.between(pose)
+            edge = self._odometry_edge(polygon, guess)
+            parent = (self.current_id, edge)
+            flown = _bent_to(self._flown_xy(scan.stamp_s, guess), guess, edge)
         kf = self.map.add_keyframe(scan.stamp_s, pose, polygon, parent, flown)
         at = bisect.bisect_right(self._keyframe_stamps[0], kf.stamp_s)
         self._keyframe_stamps[0].insert(at, kf.stamp_s)
@@ -559,6 +575,19 @@ class Explorer:
         if p.loop_closing.enabled:
             self._view_matcher.start(kf.keyframe_id)
         return True
+
+    def _odometry_edge(self, polygon: FovPolygon, guess: Pose2) -> Pose2:
+        """The new keyframe's pose in the current one's frame: the odometry's ``guess``,
+        corrected by matching the new view's walls to the current view's (see odometry_matching)."""
+        assert self.current_id is not None
+        if not self.params.odometry_matching.enabled:
+            return guess
+        parent = self.map.keyframes[self.current_id]
+        matched = match_odometry_edge(polygon, parent, guess, self.params.odometry_matching)
+        if matched is None:
+            return guess
+        self.odometry_edges_matched += 1
+        return matched
 
     def _match_views(self) -> None:
         """A step of the search for a loop closure of the companion's own (see loop_closing);
@@ -573,6 +602,22 @@ class Explorer:
         self._matched = None
         self.map.add_loop_closure(found.earlier_id, found.later_id, found.earlier_to_later)
         self.loop_closures_matched += 1
+
+
+def _bent_to(flown_xy: FloatArray, odometry_end: Pose2, matched_end: Pose2) -> FloatArray:
+    """The way flown (odometry, ending at ``odometry_end``) bent to end at ``matched_end``
+    instead: each point moved by its share (by distance along the way) of the correction."""
+    if flown_xy.shape[0] == 0 or matched_end == odometry_end:
+        return flown_xy
+    correction = matched_end.compose(odometry_end.inverse())
+    way = np.vstack(([0.0, 0.0], flown_xy, [odometry_end.x_m, odometry_end.y_m]))
+    along = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(way, axis=0).T))))
+    share = along[1:-1] / max(float(along[-1]), 1e-9)
+    out = np.empty_like(flown_xy)
+    for i, (xy, f) in enumerate(zip(flown_xy, share, strict=True)):
+        part = Pose2(f * correction.x_m, f * correction.y_m, f * correction.yaw_rad)
+        out[i] = part.apply(xy[None])[0]
+    return out
 
 
 def _half_fov_rad(scan: DepthScan) -> float:

@@ -17,7 +17,7 @@ import numpy as np
 from companion.core.fov_polygon import VertexKind
 from companion.core.geometry import FloatArray, Pose2, wrap_angles
 from companion.core.local_map import Keyframe, LocalMap
-from companion.core.scan_matching import ScanMatch, ScanMatchParams, accept_match, match_to_walls
+from companion.core.scan_matching import ScanMatch, ScanMatchParams, accept_match, match_to_walls, wall_points
 
 
 @dataclass(frozen=True, slots=True)
@@ -204,18 +204,8 @@ def _same_pose(a: Pose2, b: Pose2, params: LoopClosingParams) -> bool:
 
 
 def _obstacle_points(kf: Keyframe, spacing_m: float) -> FloatArray:
-    """Points along the keyframe's obstacle edges (its walls), in its frame: about one per
-    ``spacing_m`` of wall, so a match weighs walls by length, not by how many vertices the
-    view's simplification left on them."""
+    """The keyframe's walls as points about ``spacing_m`` apart (:func:`wall_points`) and its
+    obstacle vertices, in its frame."""
     poly = kf.polygon
-    corners = poly.vertices_xy[poly.kinds == VertexKind.OBSTACLE]
-    walls = kf.walls
-    if walls.shape[0] == 0:
-        return np.asarray(corners, dtype=np.float64).reshape(-1, 2)
-    a, b = walls[:, 0, :], walls[:, 1, :]
-    counts = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / spacing_m).astype(np.intp))
-    owner = np.repeat(np.arange(walls.shape[0]), counts)
-    starts = np.cumsum(counts) - counts
-    t = (np.arange(owner.size) - starts[owner]) / counts[owner]
-    along = a[owner] + t[:, None] * (b - a)[owner]
-    return np.asarray(np.vstack((along, corners)), dtype=np.float64)
+    corners = np.asarray(poly.vertices_xy[poly.kinds == VertexKind.OBSTACLE], dtype=np.float64).reshape(-1, 2)
+    return np.asarray(np.vstack((wall_points(kf.walls, spacing_m), corners)), dtype=np.float64)

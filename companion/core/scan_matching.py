@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 import shapely
+from numpy.typing import NDArray
 
-from companion.core.geometry import FloatArray, Pose2, closest_on_segments
+from companion.core.geometry import FloatArray, Pose2, closest_on_segments, wrap_angle
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,6 +87,70 @@ def match_to_walls(
     return pose, dist, normals
 
 
+def match_with_prior(
+    points_xy: FloatArray,
+    walls: FloatArray,
+    guess: Pose2,
+    prior_sigma_xy_m: float,
+    prior_sigma_yaw_rad: float,
+    params: ScanMatchParams | None = None,
+) -> tuple[Pose2, FloatArray, FloatArray] | None:
+    """:func:`match_to_walls` weighed against ``guess`` as a prior (the source frame's origin
+    within ``prior_sigma_xy_m`` per axis, its heading within ``prior_sigma_yaw_rad``; the
+    returns' own spread is ``params.inlier_m / 2``): where the walls fix the pose the returns
+    decide, where they fix nothing (along a corridor) the guess stays. Same results."""
+    p = params or ScanMatchParams()
+    if points_xy.shape[0] < p.min_inliers or walls.shape[0] == 0:
+        return None
+    sigma_scan_m = 0.5 * p.inlier_m
+    weights = np.array([prior_sigma_xy_m, prior_sigma_xy_m, prior_sigma_yaw_rad]) ** -2 * sigma_scan_m**2
+    pose, gate = guess, p.start_gate_m
+    moved = pose.apply(points_xy)
+    lo, hi = moved.min(axis=0) - gate, moved.max(axis=0) + gate
+    walls = walls[np.all((walls.max(axis=1) >= lo) & (walls.min(axis=1) <= hi), axis=1)]
+    if walls.shape[0] == 0:
+        return None
+    for _ in range(p.max_iterations):
+        dist, closest, normals, at_end = _nearest_on_walls(moved, walls, ends=True)
+        # A return past a wall's end (the other view saw that wall less far) says nothing of
+        # where along the wall it lies; pulled to the end, it would shorten every corridor.
+        use = (dist < gate) & ~at_end
+        if int(np.count_nonzero(use)) < p.min_inliers:
+            return None
+        step = _solve_step(moved[use], closest[use], normals[use], (pose, guess, weights))
+        pose = step.compose(pose)
+        moved = pose.apply(points_xy)
+        gate = max(p.final_gate_m, p.gate_shrink * gate)
+        if math.hypot(step.x_m, step.y_m) < 1e-3 and abs(step.yaw_rad) < 1e-4 and gate <= p.final_gate_m:
+            break
+    dist, _, normals = _nearest_on_walls(moved, walls)
+    return pose, dist, normals
+
+
+def fit_cost(points_xy: FloatArray, walls: FloatArray, pose: Pose2, truncate_m: float) -> float:
+    """How badly ``points_xy`` (source frame) placed at ``pose`` fit ``walls``: the mean squared
+    distance to the nearest wall, each capped at ``truncate_m`` (a return off every wall counts
+    the same however far off), over the returns not past a wall's end."""
+    if points_xy.shape[0] == 0 or walls.shape[0] == 0:
+        return truncate_m**2
+    dist, _, _, at_end = _nearest_on_walls(pose.apply(points_xy), walls, ends=True)
+    capped = np.minimum(dist[~at_end], truncate_m)
+    return float(np.mean(capped**2)) if capped.size else truncate_m**2
+
+
+def wall_points(walls: FloatArray, spacing_m: float) -> FloatArray:
+    """Points along ``walls`` ((M, 2, 2)) about ``spacing_m`` apart, from each wall's first end:
+    a match then weighs walls by length, not by how many vertices a view's simplification left."""
+    if walls.shape[0] == 0:
+        return np.zeros((0, 2))
+    a, b = walls[:, 0, :], walls[:, 1, :]
+    counts = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / spacing_m).astype(np.intp))
+    owner = np.repeat(np.arange(walls.shape[0]), counts)
+    starts = np.cumsum(counts) - counts
+    t = (np.arange(owner.size) - starts[owner]) / counts[owner]
+    return np.asarray(a[owner] + t[:, None] * (b - a)[owner], dtype=np.float64)
+
+
 def accept_match(
     source_points_xy: FloatArray,
     source_view: shapely.Geometry,
@@ -131,9 +197,20 @@ def _contradicted(points_xy: FloatArray, view: shapely.Geometry, p: ScanMatchPar
     return bool(deep > p.max_contradiction_fraction * points_xy.shape[0])
 
 
-def _nearest_on_walls(points_xy: FloatArray, walls: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+@overload
+def _nearest_on_walls(
+    points_xy: FloatArray, walls: FloatArray, ends: Literal[False] = False
+) -> tuple[FloatArray, FloatArray, FloatArray]: ...
+@overload
+def _nearest_on_walls(
+    points_xy: FloatArray, walls: FloatArray, ends: Literal[True]
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]: ...
+def _nearest_on_walls(
+    points_xy: FloatArray, walls: FloatArray, ends: bool = False
+) -> tuple[FloatArray, FloatArray, FloatArray] | tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
     """Each point's distance to its nearest wall, the nearest point on it, and the wall's unit
-    normal (the direction from that point when it is a wall's end: the residual is a distance)."""
+    normal (the direction from that point when it is a wall's end: the residual is a distance);
+    with ``ends``, also whether that nearest point is a wall's end."""
     closest_all, t = closest_on_segments(points_xy, walls)
     d_all = np.linalg.norm(points_xy[:, None, :] - closest_all, axis=2)
     j = np.argmin(d_all, axis=1)
@@ -146,18 +223,35 @@ def _nearest_on_walls(points_xy: FloatArray, walls: FloatArray) -> tuple[FloatAr
     off = points_xy - closest
     far = at_end & (dist > 1e-9)
     normals[far] = off[far] / dist[far, None]
-    return np.asarray(dist, dtype=np.float64), np.asarray(closest, dtype=np.float64), normals
+    out = np.asarray(dist, dtype=np.float64), np.asarray(closest, dtype=np.float64), normals
+    return (*out, np.asarray(at_end, dtype=bool)) if ends else out
 
 
-def _solve_step(points_xy: FloatArray, closest_xy: FloatArray, normals: FloatArray) -> Pose2:
+def _solve_step(
+    points_xy: FloatArray,
+    closest_xy: FloatArray,
+    normals: FloatArray,
+    prior: tuple[Pose2, Pose2, FloatArray] | None = None,
+) -> Pose2:
     """The rigid motion (in the target frame) that best moves ``points_xy`` onto the lines
-    through ``closest_xy`` with ``normals``: linearised about the points' centroid, least squares."""
+    through ``closest_xy`` with ``normals``: linearised about the points' centroid, least squares.
+    ``prior = (pose, guess, weights)`` also pulls the source origin and heading (now at
+    ``pose``) back towards ``guess``, each axis weighed as the scan's residuals are."""
     c = points_xy.mean(axis=0)
     rel = points_xy - c
     lever = normals[:, 1] * rel[:, 0] - normals[:, 0] * rel[:, 1]  # n . perp(p - c)
     jac = np.column_stack((normals, lever))
     resid = np.einsum("nk,nk->n", normals, points_xy - closest_xy)
-    delta = np.linalg.solve(jac.T @ jac + 1e-9 * np.eye(3), -jac.T @ resid)
+    lhs, rhs = jac.T @ jac + 1e-9 * np.eye(3), -jac.T @ resid
+    if prior is not None:
+        pose, guess, weights = prior
+        # The step moves the origin o by t + dyaw * perp(o - c), and the heading by dyaw.
+        ox, oy = pose.x_m - c[0], pose.y_m - c[1]
+        a = np.array([[1.0, 0.0, -oy], [0.0, 1.0, ox], [0.0, 0.0, 1.0]])
+        off = np.array([pose.x_m - guess.x_m, pose.y_m - guess.y_m, wrap_angle(pose.yaw_rad - guess.yaw_rad)])
+        lhs += a.T @ (weights[:, None] * a)
+        rhs -= a.T @ (weights * off)
+    delta = np.linalg.solve(lhs, rhs)
     tx, ty, dyaw = (float(v) for v in delta)
     co, si = math.cos(dyaw), math.sin(dyaw)
     # p -> c + R (p - c) + t  ==  R p + (c - R c + t)
