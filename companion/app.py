@@ -209,7 +209,7 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
     every metre, 2).
 
     Odometry edges are matched (see companion.core.odometry_matching) only with a back end: with
-    the simulated one it saved 4-5 % of the exploration time on 22 maps, seeds 1-10. Without one,
+    the simulated one it saved 4 % of the exploration time on 22 maps, seeds 1-10. Without one,
     where the map's closing along the graph and the own loop closures were tuned to the
     odometry's errors, three variants of it reached coverage 0.99 in 19, 20 and 26 of 30 runs
     against 25 without, and one of them stopped at 0.36 (session 27, docs/benchmarks.md)."""

@@ -98,7 +98,9 @@ def match_with_prior(
     """:func:`match_to_walls` weighed against ``guess`` as a prior (the source frame's origin
     within ``prior_sigma_xy_m`` per axis, its heading within ``prior_sigma_yaw_rad``; the
     returns' own spread is ``params.inlier_m / 2``): where the walls fix the pose the returns
-    decide, where they fix nothing (along a corridor) the guess stays. Same results."""
+    decide, where they fix nothing (along a corridor) the guess stays. A return past a wall's end
+    does not pair, and each weighs 1 / (1 + (r / spread)^2): two views' simplified walls differ
+    by a few centimetres, and those few returns would otherwise pull the pose. Same results."""
     p = params or ScanMatchParams()
     if points_xy.shape[0] < p.min_inliers or walls.shape[0] == 0:
         return None
@@ -117,7 +119,7 @@ def match_with_prior(
         use = (dist < gate) & ~at_end
         if int(np.count_nonzero(use)) < p.min_inliers:
             return None
-        step = _solve_step(moved[use], closest[use], normals[use], (pose, guess, weights))
+        step = _solve_step(moved[use], closest[use], normals[use], (pose, guess, weights), sigma_scan_m)
         pose = step.compose(pose)
         moved = pose.apply(points_xy)
         gate = max(p.final_gate_m, p.gate_shrink * gate)
@@ -232,17 +234,20 @@ def _solve_step(
     closest_xy: FloatArray,
     normals: FloatArray,
     prior: tuple[Pose2, Pose2, FloatArray] | None = None,
+    robust_m: float | None = None,
 ) -> Pose2:
     """The rigid motion (in the target frame) that best moves ``points_xy`` onto the lines
     through ``closest_xy`` with ``normals``: linearised about the points' centroid, least squares.
     ``prior = (pose, guess, weights)`` also pulls the source origin and heading (now at
-    ``pose``) back towards ``guess``, each axis weighed as the scan's residuals are."""
+    ``pose``) back towards ``guess``, each axis weighed as the scan's residuals are; with
+    ``robust_m`` each residual r weighs 1 / (1 + (r / robust_m)^2) (Cauchy)."""
     c = points_xy.mean(axis=0)
     rel = points_xy - c
     lever = normals[:, 1] * rel[:, 0] - normals[:, 0] * rel[:, 1]  # n . perp(p - c)
     jac = np.column_stack((normals, lever))
     resid = np.einsum("nk,nk->n", normals, points_xy - closest_xy)
-    lhs, rhs = jac.T @ jac + 1e-9 * np.eye(3), -jac.T @ resid
+    w = np.ones_like(resid) if robust_m is None else 1.0 / (1.0 + (resid / robust_m) ** 2)
+    lhs, rhs = jac.T @ (w[:, None] * jac) + 1e-9 * np.eye(3), -jac.T @ (w * resid)
     if prior is not None:
         pose, guess, weights = prior
         # The step moves the origin o by t + dyaw * perp(o - c), and the heading by dyaw.
