@@ -60,31 +60,7 @@ def match_to_walls(
     """Align ``points_xy`` (source frame) to ``walls`` ((M, 2, 2), target frame) from ``guess``
     (source in target). Returns the pose, each point's distance to its nearest wall and that
     wall's unit normal, or None when too few points ever pair with a wall."""
-    p = params or ScanMatchParams()
-    if points_xy.shape[0] < p.min_inliers or walls.shape[0] == 0:
-        return None
-    pose = guess
-    gate = p.start_gate_m
-    # Only the walls the points could pair with: within the first gate of their bounding box.
-    moved = pose.apply(points_xy)
-    lo, hi = moved.min(axis=0) - gate, moved.max(axis=0) + gate
-    ends_lo, ends_hi = walls.min(axis=1), walls.max(axis=1)
-    walls = walls[np.all((ends_hi >= lo) & (ends_lo <= hi), axis=1)]
-    if walls.shape[0] == 0:
-        return None
-    for _ in range(p.max_iterations):
-        dist, closest, normals = _nearest_on_walls(moved, walls)
-        use = dist < gate
-        if int(np.count_nonzero(use)) < p.min_inliers:
-            return None
-        step = _solve_step(moved[use], closest[use], normals[use])
-        pose = step.compose(pose)
-        moved = pose.apply(points_xy)
-        gate = max(p.final_gate_m, p.gate_shrink * gate)
-        if math.hypot(step.x_m, step.y_m) < 1e-3 and abs(step.yaw_rad) < 1e-4 and gate <= p.final_gate_m:
-            break
-    dist, _, normals = _nearest_on_walls(moved, walls)
-    return pose, dist, normals
+    return _icp(points_xy, walls, guess, params or ScanMatchParams(), None)
 
 
 def match_with_prior(
@@ -101,12 +77,20 @@ def match_with_prior(
     decide, where they fix nothing (along a corridor) the guess stays. A return past a wall's end
     does not pair, and each weighs 1 / (1 + (r / spread)^2): two views' simplified walls differ
     by a few centimetres, and those few returns would otherwise pull the pose. Same results."""
-    p = params or ScanMatchParams()
+    sigmas = np.array([prior_sigma_xy_m, prior_sigma_xy_m, prior_sigma_yaw_rad])
+    return _icp(points_xy, walls, guess, params or ScanMatchParams(), sigmas)
+
+
+def _icp(
+    points_xy: FloatArray, walls: FloatArray, guess: Pose2, p: ScanMatchParams, prior_sigmas: FloatArray | None
+) -> tuple[Pose2, FloatArray, FloatArray] | None:
+    """The iterations of :func:`match_to_walls` (``prior_sigmas`` None) and
+    :func:`match_with_prior` (the prior's sigmas for x, y and yaw)."""
     if points_xy.shape[0] < p.min_inliers or walls.shape[0] == 0:
         return None
     sigma_scan_m = 0.5 * p.inlier_m
-    weights = np.array([prior_sigma_xy_m, prior_sigma_xy_m, prior_sigma_yaw_rad]) ** -2 * sigma_scan_m**2
     pose, gate = guess, p.start_gate_m
+    # Only the walls the points could pair with: within the first gate of their bounding box.
     moved = pose.apply(points_xy)
     lo, hi = moved.min(axis=0) - gate, moved.max(axis=0) + gate
     walls = walls[np.all((walls.max(axis=1) >= lo) & (walls.min(axis=1) <= hi), axis=1)]
@@ -114,12 +98,16 @@ def match_with_prior(
         return None
     for _ in range(p.max_iterations):
         dist, closest, normals, at_end = _nearest_on_walls(moved, walls, ends=True)
-        # A return past a wall's end (the other view saw that wall less far) says nothing of
-        # where along the wall it lies; pulled to the end, it would shorten every corridor.
-        use = (dist < gate) & ~at_end
+        use = dist < gate
+        if prior_sigmas is not None:
+            # A return past a wall's end (the other view saw that wall less far) says nothing of
+            # where along the wall it lies; pulled to the end, it would shorten every corridor.
+            use &= ~at_end
         if int(np.count_nonzero(use)) < p.min_inliers:
             return None
-        step = _solve_step(moved[use], closest[use], normals[use], (pose, guess, weights), sigma_scan_m)
+        prior = None if prior_sigmas is None else (pose, guess, prior_sigmas**-2 * sigma_scan_m**2)
+        robust_m = None if prior_sigmas is None else sigma_scan_m
+        step = _solve_step(moved[use], closest[use], normals[use], prior, robust_m)
         pose = step.compose(pose)
         moved = pose.apply(points_xy)
         gate = max(p.final_gate_m, p.gate_shrink * gate)
