@@ -135,6 +135,8 @@ def test_companion_explores_room_with_zenoh_sensors_monitored_and_garbage_droppe
     truth = json.loads(sitl_report.read_text())
     assert truth["coverage"] >= 0.99 and truth["collisions"] == 0 and not truth["armed"]
     assert result["termination"] in ("complete", "unreachable_frontiers_left")
+    # With a back end's loop closures the keyframes' odometry edges are matched too.
+    assert 0 < result["odometry_edges_matched"] < result["keyframes"]
     # Scans all the way through (the sensor's 10 Hz of simulated time; a little lost at start and end)
     expected_scans = truth["sim_time_s"] * SensorParams().rate_hz
     assert result["inputs"]["scans"] >= 0.8 * expected_scans and result["inputs"]["loop_closures"] > 10
