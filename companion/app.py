@@ -211,8 +211,9 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
     Odometry edges are matched (see companion.core.odometry_matching) only with a back end: with
     the simulated one it saved 4 % of the exploration time on 22 maps, seeds 1-10. Without one,
     where the map's closing along the graph and the own loop closures were tuned to the
-    odometry's errors, three variants of it reached coverage 0.99 in 19, 20 and 26 of 30 runs
-    against 25 without, and one of them stopped at 0.36 (session 27, docs/benchmarks.md)."""
+    odometry's errors, its variants reached coverage 0.99 in 19-26 of 30 runs against 25 without
+    (the shipped one 25, and 28 against 24 on seeds 6-10), one stopping at 0.36: not yet a case
+    for changing that mode (session 27, docs/benchmarks.md)."""
     if loop_closures not in ("back_end", "scan_matching", "none"):
         raise ValueError(f"unknown loop-closure source {loop_closures!r}")
     back_end = loop_closures == "back_end"
