@@ -8,12 +8,14 @@ import json
 import math
 import sys
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from companion.app import LoopClosureSource, tuning_for
+from companion.core.odometry_matching import OdometryMatchingParams
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
@@ -86,6 +88,12 @@ def _parser() -> argparse.ArgumentParser:
         help="the map's drift margin per keyframe along the pose graph, as "
         "exploration.odometry_drift_m_per_keyframe in a config (default 0.05)",
     )
+    sim.add_argument(
+        "--odometry-matching",
+        choices=("on", "off"),
+        help="correct each keyframe's odometry edge by matching its view to the previous one's, as "
+        "exploration.match_odometry_edges in a config (default: on with the simulated back end only)",
+    )
     sim.add_argument("--report", type=Path, help="write the JSON report here")
     sim.add_argument("--plots", type=Path, help="write PNG figures into this folder")
     sim.add_argument("--no-baseline", action="store_true", help="with --plots: skip the grid baseline run")
@@ -115,6 +123,9 @@ def _explore(
     sources: dict[str, LoopClosureSource] = {"simulated": "back_end", "scan-matching": "scan_matching", "none": "none"}
     source = sources[args.loop_closures]
     explorer_params = tuning_for(source, args.odometry_drift_per_keyframe)
+    if args.odometry_matching is not None:
+        matching = OdometryMatchingParams(enabled=args.odometry_matching == "on")
+        explorer_params = replace(explorer_params, odometry_matching=matching)
     sim_params = None if source == "back_end" else SimParams(slam=SlamParams(enabled=False))
 
     def explore(progress: Callable[[float, float], None] | None = None) -> RunTrace:

@@ -411,6 +411,10 @@ def test_cli_sim_writes_the_report_with_the_documented_fields(small_room, tmp_pa
     assert set(r["step_ms"]) >= {"p50", "p99"}
     # Keyframe edges corrected by matching each view to the previous one's (not the first's).
     assert 0 < r["odometry_edges_matched"] < r["keyframes"]
+    off = tmp_path / "off.json"
+    args = ["sim", "--map", str(small_room), "--seed", "1", "--max-time", "60", "--quiet", "--no-baseline"]
+    main([*args, "--odometry-matching", "off", "--report", str(off)])  # 60 s: may end at its time limit
+    assert json.loads(off.read_text())["odometry_edges_matched"] == 0 and json.loads(off.read_text())["keyframes"] > 5
 
 
 def test_cli_sim_without_loop_closures_flies_as_the_service_does_with_none(shipped_maps, tmp_path):
