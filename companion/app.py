@@ -18,7 +18,6 @@ from companion.config import Config
 from companion.core.explorer import ExplorerParams
 from companion.core.local_map import MapParams
 from companion.core.loop_closing import LoopClosingParams
-from companion.core.odometry_matching import OdometryMatchingParams
 from companion.core.planner import PlannerParams
 from companion.core.setpoint_lead import LeadParams
 from companion.errors import CompanionError
@@ -219,7 +218,7 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
     back_end = loop_closures == "back_end"
     params = ExplorerParams(map=map_params(back_end, drift_m_per_keyframe), planner=planner_params(back_end))
     if not back_end:
-        params = replace(params, odometry_matching=OdometryMatchingParams(enabled=False))
+        params = replace(params, odometry_matching=replace(params.odometry_matching, enabled=False))
     if loop_closures == "scan_matching":
         params = replace(
             params,
@@ -236,6 +235,6 @@ def explorer_params(config: Config) -> ExplorerParams:
     params = replace(params, lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m))
     if config.exploration.match_odometry_edges is not None:
         params = replace(
-            params, odometry_matching=OdometryMatchingParams(enabled=config.exploration.match_odometry_edges)
+            params, odometry_matching=replace(params.odometry_matching, enabled=config.exploration.match_odometry_edges)
         )
     return params

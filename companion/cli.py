@@ -15,7 +15,6 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from companion.app import LoopClosureSource, tuning_for
-from companion.core.odometry_matching import OdometryMatchingParams
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
@@ -124,7 +123,7 @@ def _explore(
     source = sources[args.loop_closures]
     explorer_params = tuning_for(source, args.odometry_drift_per_keyframe)
     if args.odometry_matching is not None:
-        matching = OdometryMatchingParams(enabled=args.odometry_matching == "on")
+        matching = replace(explorer_params.odometry_matching, enabled=args.odometry_matching == "on")
         explorer_params = replace(explorer_params, odometry_matching=matching)
     sim_params = None if source == "back_end" else SimParams(slam=SlamParams(enabled=False))
 

@@ -14,10 +14,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from companion.core.fov_polygon import VertexKind
 from companion.core.geometry import FloatArray, Pose2, wrap_angles
 from companion.core.local_map import Keyframe, LocalMap
-from companion.core.scan_matching import ScanMatch, ScanMatchParams, accept_match, match_to_walls, wall_points
+from companion.core.scan_matching import ScanMatch, ScanMatchParams, accept_match, match_to_walls, view_points
 
 
 @dataclass(frozen=True, slots=True)
@@ -127,7 +126,7 @@ class ViewMatcher:
         p = self.params
         if self._candidates is None:
             self._candidates = loop_closure_candidates(local_map, kf_id, p)
-            self._source = _obstacle_points(local_map.keyframes[kf_id], p.point_spacing_m)
+            self._source = _view_points(local_map.keyframes[kf_id], p.point_spacing_m)
             return None
         if self._found is not None:
             return self._restart(local_map)
@@ -170,7 +169,7 @@ class ViewMatcher:
         aligned = match_to_walls(self._source, old.walls, guess, match_params or p.match)
         if aligned is None:
             return None
-        target = _obstacle_points(old, p.point_spacing_m)
+        target = _view_points(old, p.point_spacing_m)
         match = accept_match(self._source, new.polygon.shape, target, old.polygon.shape, aligned, p.match)
         if match is None:
             return None
@@ -203,9 +202,6 @@ def _same_pose(a: Pose2, b: Pose2, params: LoopClosingParams) -> bool:
     return math.hypot(rel.x_m, rel.y_m) <= params.same_pose_m and abs(rel.yaw_rad) <= params.same_pose_rad
 
 
-def _obstacle_points(kf: Keyframe, spacing_m: float) -> FloatArray:
-    """The keyframe's walls as points about ``spacing_m`` apart (:func:`wall_points`) and its
-    obstacle vertices, in its frame."""
-    poly = kf.polygon
-    corners = np.asarray(poly.vertices_xy[poly.kinds == VertexKind.OBSTACLE], dtype=np.float64).reshape(-1, 2)
-    return np.asarray(np.vstack((wall_points(kf.walls, spacing_m), corners)), dtype=np.float64)
+def _view_points(kf: Keyframe, spacing_m: float) -> FloatArray:
+    """The keyframe's walls and obstacle vertices as points, in its frame (:func:`view_points`)."""
+    return view_points(kf.polygon, kf.walls, spacing_m)

@@ -15,12 +15,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
-
-from companion.core.fov_polygon import FovPolygon, VertexKind
-from companion.core.geometry import FloatArray, Pose2
+from companion.core.fov_polygon import FovPolygon
+from companion.core.geometry import Pose2
 from companion.core.local_map import Keyframe
-from companion.core.scan_matching import ScanMatchParams, accept_match, fit_cost, match_with_prior, wall_points
+from companion.core.scan_matching import ScanMatchParams, accept_match, fit_cost, match_with_prior, view_points
 
 
 def _edge_match_params() -> ScanMatchParams:
@@ -54,13 +52,13 @@ def match_odometry_edge(
     ``guess`` by matching its walls to the parent's; None when the match is not trusted (too
     few returns on the parent's walls, a poor fit, a contradiction, or a correction the
     odometry cannot have needed)."""
-    source = _points(polygon, polygon.obstacle_segments(), params.point_spacing_m)
+    source = view_points(polygon, polygon.obstacle_segments(), params.point_spacing_m)
     aligned = match_with_prior(
         source, parent.walls, guess, params.prior_sigma_xy_m, params.prior_sigma_yaw_rad, params.match
     )
     if aligned is None:
         return None
-    target = _points(parent.polygon, parent.walls, params.point_spacing_m)
+    target = view_points(parent.polygon, parent.walls, params.point_spacing_m)
     match = accept_match(source, polygon.shape, target, parent.polygon.shape, aligned, params.match)
     if match is None:
         return None
@@ -77,8 +75,3 @@ def match_odometry_edge(
     if abs(moved.yaw_rad) > limit * params.prior_sigma_yaw_rad:
         return None
     return match.pose
-
-
-def _points(polygon: FovPolygon, walls: FloatArray, spacing_m: float) -> FloatArray:
-    corners = np.asarray(polygon.vertices_xy[polygon.kinds == VertexKind.OBSTACLE], dtype=np.float64)
-    return np.asarray(np.vstack((wall_points(walls, spacing_m), corners.reshape(-1, 2))), dtype=np.float64)

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, overload
 
 import numpy as np
 import shapely
 from numpy.typing import NDArray
 
+from companion.core.fov_polygon import FovPolygon, VertexKind
 from companion.core.geometry import FloatArray, Pose2, closest_on_segments, wrap_angle
 
 
@@ -76,7 +76,8 @@ def match_with_prior(
     returns' own spread is ``params.inlier_m / 2``): where the walls fix the pose the returns
     decide, where they fix nothing (along a corridor) the guess stays. A return past a wall's end
     does not pair, and each weighs 1 / (1 + (r / spread)^2): two views' simplified walls differ
-    by a few centimetres, and those few returns would otherwise pull the pose. Same results."""
+    by a few centimetres, and those few returns would otherwise pull the pose. Returns as
+    :func:`match_to_walls` does."""
     sigmas = np.array([prior_sigma_xy_m, prior_sigma_xy_m, prior_sigma_yaw_rad])
     return _icp(points_xy, walls, guess, params or ScanMatchParams(), sigmas)
 
@@ -97,7 +98,7 @@ def _icp(
     if walls.shape[0] == 0:
         return None
     for _ in range(p.max_iterations):
-        dist, closest, normals, at_end = _nearest_on_walls(moved, walls, ends=True)
+        dist, closest, normals, at_end = _nearest_on_walls(moved, walls)
         use = dist < gate
         if prior_sigmas is not None:
             # A return past a wall's end (the other view saw that wall less far) says nothing of
@@ -113,7 +114,7 @@ def _icp(
         gate = max(p.final_gate_m, p.gate_shrink * gate)
         if math.hypot(step.x_m, step.y_m) < 1e-3 and abs(step.yaw_rad) < 1e-4 and gate <= p.final_gate_m:
             break
-    dist, _, normals = _nearest_on_walls(moved, walls)
+    dist, _, normals, _ = _nearest_on_walls(moved, walls)
     return pose, dist, normals
 
 
@@ -123,22 +124,25 @@ def fit_cost(points_xy: FloatArray, walls: FloatArray, pose: Pose2, truncate_m: 
     the same however far off), over the returns not past a wall's end."""
     if points_xy.shape[0] == 0 or walls.shape[0] == 0:
         return truncate_m**2
-    dist, _, _, at_end = _nearest_on_walls(pose.apply(points_xy), walls, ends=True)
+    dist, _, _, at_end = _nearest_on_walls(pose.apply(points_xy), walls)
     capped = np.minimum(dist[~at_end], truncate_m)
     return float(np.mean(capped**2)) if capped.size else truncate_m**2
 
 
-def wall_points(walls: FloatArray, spacing_m: float) -> FloatArray:
-    """Points along ``walls`` ((M, 2, 2)) about ``spacing_m`` apart, from each wall's first end:
-    a match then weighs walls by length, not by how many vertices a view's simplification left."""
+def view_points(polygon: FovPolygon, walls: FloatArray, spacing_m: float) -> FloatArray:
+    """A view's walls (``walls``, its obstacle edges (M, 2, 2)) as points about ``spacing_m``
+    apart, from each wall's first end, and its obstacle vertices, in its frame: a match then
+    weighs walls by length, not by how many vertices the view's simplification left on them."""
+    corners = np.asarray(polygon.vertices_xy[polygon.kinds == VertexKind.OBSTACLE], dtype=np.float64).reshape(-1, 2)
     if walls.shape[0] == 0:
-        return np.zeros((0, 2))
+        return corners
     a, b = walls[:, 0, :], walls[:, 1, :]
     counts = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / spacing_m).astype(np.intp))
     owner = np.repeat(np.arange(walls.shape[0]), counts)
     starts = np.cumsum(counts) - counts
     t = (np.arange(owner.size) - starts[owner]) / counts[owner]
-    return np.asarray(a[owner] + t[:, None] * (b - a)[owner], dtype=np.float64)
+    along = a[owner] + t[:, None] * (b - a)[owner]
+    return np.asarray(np.vstack((along, corners)), dtype=np.float64)
 
 
 def accept_match(
@@ -187,20 +191,12 @@ def _contradicted(points_xy: FloatArray, view: shapely.Geometry, p: ScanMatchPar
     return bool(deep > p.max_contradiction_fraction * points_xy.shape[0])
 
 
-@overload
 def _nearest_on_walls(
-    points_xy: FloatArray, walls: FloatArray, ends: Literal[False] = False
-) -> tuple[FloatArray, FloatArray, FloatArray]: ...
-@overload
-def _nearest_on_walls(
-    points_xy: FloatArray, walls: FloatArray, ends: Literal[True]
-) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]: ...
-def _nearest_on_walls(
-    points_xy: FloatArray, walls: FloatArray, ends: bool = False
-) -> tuple[FloatArray, FloatArray, FloatArray] | tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    points_xy: FloatArray, walls: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
     """Each point's distance to its nearest wall, the nearest point on it, and the wall's unit
-    normal (the direction from that point when it is a wall's end: the residual is a distance);
-    with ``ends``, also whether that nearest point is a wall's end."""
+    normal (the direction from that point when it is a wall's end: the residual is a distance),
+    and whether that nearest point is a wall's end."""
     closest_all, t = closest_on_segments(points_xy, walls)
     d_all = np.linalg.norm(points_xy[:, None, :] - closest_all, axis=2)
     j = np.argmin(d_all, axis=1)
@@ -213,8 +209,7 @@ def _nearest_on_walls(
     off = points_xy - closest
     far = at_end & (dist > 1e-9)
     normals[far] = off[far] / dist[far, None]
-    out = np.asarray(dist, dtype=np.float64), np.asarray(closest, dtype=np.float64), normals
-    return (*out, np.asarray(at_end, dtype=bool)) if ends else out
+    return np.asarray(dist, dtype=np.float64), np.asarray(closest, dtype=np.float64), normals, np.asarray(at_end)
 
 
 def _solve_step(
