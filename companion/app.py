@@ -19,7 +19,6 @@ from companion.core.explorer import ExplorerParams
 from companion.core.local_map import MapParams
 from companion.core.loop_closing import LoopClosingParams
 from companion.core.planner import PlannerParams
-from companion.core.setpoint_lead import LeadParams
 from companion.errors import CompanionError
 from companion.links.base import FlightControl, InputSource
 from companion.service import Service, ServiceSettings
@@ -212,13 +211,23 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
     where the map's closing along the graph and the own loop closures were tuned to the
     odometry's errors, its variants reached coverage 0.99 in 19-26 of 30 runs against 25 without
     (the shipped one 25, and 28 against 24 on seeds 6-10), one stopping at 0.36: not yet a case
-    for changing that mode (session 27, docs/benchmarks.md)."""
+    for changing that mode (session 27, docs/benchmarks.md).
+
+    The setpoint lead checks the way momentum takes the vehicle (companion.core.setpoint_lead)
+    only with a back end too: there it saved 4.6 % of the exploration time (22 maps, seeds 1-5);
+    with own loop closures it saved 11 % but reached coverage 0.99 in 22 of 30 runs against 25
+    (office 2 of 5 against 5; session 28, docs/benchmarks.md), so that mode keeps the check
+    along the motion's straight line."""
     if loop_closures not in ("back_end", "scan_matching", "none"):
         raise ValueError(f"unknown loop-closure source {loop_closures!r}")
     back_end = loop_closures == "back_end"
     params = ExplorerParams(map=map_params(back_end, drift_m_per_keyframe), planner=planner_params(back_end))
     if not back_end:
-        params = replace(params, odometry_matching=replace(params.odometry_matching, enabled=False))
+        params = replace(
+            params,
+            odometry_matching=replace(params.odometry_matching, enabled=False),
+            lead=replace(params.lead, predict_way=False),
+        )
     if loop_closures == "scan_matching":
         params = replace(
             params,
@@ -232,7 +241,10 @@ def explorer_params(config: Config) -> ExplorerParams:
     """The tuning a config implies (see :func:`tuning_for`); the setpoint lead bounds the speed."""
     source: LoopClosureSource = "back_end" if config.inputs.loop_closure == "zenoh" else config.inputs.loop_closure
     params = tuning_for(source, config.exploration.odometry_drift_m_per_keyframe)
-    params = replace(params, lead=LeadParams(max_lead_m=config.vehicle.max_setpoint_lead_m))
+    lead = replace(
+        params.lead, max_lead_m=config.vehicle.max_setpoint_lead_m, model_accel_mps2=config.vehicle.braking_accel_mps2
+    )
+    params = replace(params, lead=lead)
     if config.exploration.match_odometry_edges is not None:
         params = replace(
             params, odometry_matching=replace(params.odometry_matching, enabled=config.exploration.match_odometry_edges)

@@ -30,6 +30,14 @@ class VehicleConfig(_Strict):
     max_setpoint_lead_m: float = Field(
         1.5, gt=0.2, le=10.0, description="setpoints stay this close to the vehicle: it bounds the autopilot's speed"
     )
+    braking_accel_mps2: float = Field(
+        1.0,
+        gt=0.1,
+        le=20.0,
+        description="the horizontal acceleration the autopilot brakes and turns with at least (PX4 MPC_ACC_HOR, "
+        "ArduPilot WPNAV_ACCEL): with a SLAM back end the setpoint lead keeps the way momentum carries the "
+        "vehicle clear",
+    )
     input_rate_hz: float = Field(10.0, gt=0.0, le=200.0)
     altitude_m: float = Field(1.5, gt=0.2, le=50.0)
     arm_timeout_s: float = Field(90.0, gt=0.0)

@@ -147,6 +147,12 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     # measured: the loop-closure runs' distance weight sends a vehicle without closures back and forth
     assert (params.planner.distance_weight_rad_per_m < PlannerParams().distance_weight_rad_per_m) is along_graph
     assert params.lead.max_lead_m == config.vehicle.max_setpoint_lead_m
+    assert params.lead.model_accel_mps2 == config.vehicle.braking_accel_mps2 == 1.0
+    brisk = config.model_copy(update={"vehicle": config.vehicle.model_copy(update={"braking_accel_mps2": 2.5})})
+    assert explorer_params(brisk).lead.model_accel_mps2 == 2.5
+    # measured: the lead's predicted way shortened runs with a back end, and ended more runs
+    # without one short of full coverage; those keep the check along the motion's line
+    assert params.lead.predict_way is (source == "zenoh")
     assert params.map.chain_margin_per_hop_m == 0.05  # the thesis's drift unless told otherwise
     # Odometry edges matched with a back end only, as measured, unless the config says:
     assert params.odometry_matching.enabled is (source == "zenoh")

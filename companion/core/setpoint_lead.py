@@ -3,9 +3,15 @@
 An autopilot flies a far position target as fast as its own limits allow (PX4 offboard up to
 MPC_XY_VEL_MAX, 12 m/s by default) and a near one about as fast as its position gain makes of the
 distance, braking to stop on it. So the setpoint is kept within a maximum lead of the vehicle, and
-within the free travel the newest scan shows ahead (towards the setpoint, and along the vehicle's
-motion, which carries it on while it turns): the vehicle comes in slowly enough to stop short of a
-seen obstacle, whatever the planner asks next.
+within the free travel the newest scan shows towards it: the vehicle comes in slowly enough to stop
+short of a seen obstacle, whatever the planner asks next. Moving, the vehicle does not fly the
+setpoint's straight line: momentum carries it on while it turns. So the way it would take were the
+setpoint to stay put (:func:`stop_path`, a modelled autopilot) must keep the same berth; else the
+lead is halved until it does, or the vehicle brakes. That way, not the motion's straight line,
+decides: checked along the straight line, a vehicle drifting 5 degrees towards one wall of a 1 m
+corridor was held to a crawl, though stopping that drift takes millimetres. Already closer to a
+return than the body's plain berth (a tight door), even braking carries the vehicle a little
+deeper; there a way no deeper than braking's is allowed (along or away), else it hovered there.
 
 Returns remembered from earlier scans (out of view now) hold the vehicle too, with more berth. When
 they alone hold it where the newest scan would let it go, the vehicle turns to look at the one in its
@@ -38,7 +44,7 @@ class LeadParams:
     # seed 2). The newest scan's returns keep the plain margin: it is ahead, where speed is.
     memory_margin_m: float = 0.05
     stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
-    moving_mps: float = 0.1  # above this speed the motion's own direction is checked too
+    moving_mps: float = 0.1  # above this speed the way momentum takes is checked too
     # The contact radius grows by this many seconds of speed: at speed the vehicle does not hold
     # a line to the centimetre (a turn, drift, the autopilot's own tracking), and a corner its
     # line passes 0.3 m from at 1.5 m/s is one it may hit; it cannot brake in time once it sees it.
@@ -47,6 +53,20 @@ class LeadParams:
     # newest scan alone would leave it at least ``look_lead_m``: then it looks at what holds it.
     hold_m: float = 0.05
     look_lead_m: float = 0.2
+    # Moving, the vehicle does not fly the setpoint's straight line: its momentum carries it on
+    # while it turns. The way it would take, were the setpoint to stay put, is predicted with an
+    # autopilot that coasts ``model_delay_s`` (the setpoint's trip and a control cycle), then
+    # changes its velocity at ``model_accel_mps2`` at most: no more than the autopilot really
+    # brakes with (config ``vehicle.braking_accel_mps2``; PX4's MPC_ACC_HOR defaults to 3 m/s2,
+    # ArduPilot's WPNAV_ACCEL to 2.5; the simulated vehicle's is 1). That way must keep the berth,
+    # sampled every ``model_step_s`` for up to ``model_horizon_s``.
+    model_accel_mps2: float = 1.0
+    # Off, the motion's straight line is checked instead of the predicted way (the companion's
+    # tuning without a SLAM back end: see companion.app.tuning_for).
+    predict_way: bool = True
+    model_delay_s: float = 0.1
+    model_step_s: float = 0.05
+    model_horizon_s: float = 4.0
 
 
 def limit_lead(
@@ -120,18 +140,107 @@ def _lead_m(
     speed = math.hypot(*velocity_xy)
     reach = body_radius_m + params.contact_margin_m + params.speed_margin_s * speed
     directions = [(dx, dy)]
-    if speed > params.moving_mps:
-        directions.append(velocity_xy)
+    if not params.predict_way and speed > params.moving_mps:
+        directions.append(velocity_xy)  # the motion's straight line instead of its predicted way
     remembered = np.zeros((0, 2)) if remembered_xy is None else remembered_xy
     limit: FloatArray | None = None
+    sets: list[tuple[FloatArray, float, bool, bool]] = []  # returns, contact distance, remembered, tight
     for points, radius, kept in ((returns_xy, reach, False), (remembered, reach + params.memory_margin_m, True)):
         if points.shape[0] == 0:
             continue
         rel = points - [pose.x_m, pose.y_m]
-        contact = min(radius, 0.95 * float(np.min(np.hypot(rel[:, 0], rel[:, 1]))))
+        nearest = float(np.min(np.hypot(rel[:, 0], rel[:, 1])))
+        contact = min(radius, 0.95 * nearest)
+        sets.append((rel, contact, kept, nearest < body_radius_m + params.contact_margin_m))
         for direction in directions:
             travel, i = first_contact(rel, direction, contact)
             allowed = max(0.0, travel - params.stop_margin_m)
             if allowed < lead:
                 lead, limit = allowed, (points[i] if kept else None)
-    return lead, limit
+    if not (params.predict_way and speed > params.moving_mps and sets):
+        return lead, limit
+    # The way momentum takes to the setpoint must keep the berth too: the largest of the lead and
+    # its halves whose predicted way does; else none, the vehicle brakes. Already inside the
+    # plain berth (a tight door) even braking may carry it deeper, so there a way that comes no
+    # deeper than braking's is allowed: moving along or away.
+    norm = math.hypot(dx, dy)
+    ux, uy = (dx / norm, dy / norm) if norm > 1e-9 else (0.0, 0.0)
+    braking: list[tuple[float, FloatArray | None]] | None = None
+    candidate = lead
+    while True:
+        touches = _touches(stop_path(velocity_xy, (ux * candidate, uy * candidate), params), sets)
+        if candidate > 0.0 and any(depth > 0.0 for depth, _ in touches):
+            if braking is None:
+                braking = _touches(stop_path(velocity_xy, (0.0, 0.0), params), sets)
+            if any(
+                depth > 0.0 and not (tight and depth <= brake + _DEPTH_TOLERANCE_M)
+                for (depth, _), (brake, _), (_, _, _, tight) in zip(touches, braking, sets, strict=True)
+            ):
+                candidate = 0.0 if candidate < 0.1 else 0.5 * candidate
+                continue
+        if candidate == 0.0:  # braking, it may still come into the berth: the deepest return holds it
+            depth, touched, kept = max(
+                ((d, t, k) for (d, t), (_, _, k, _) in zip(touches, sets, strict=True)), key=lambda dtk: dtk[0]
+            )
+            if depth > 0.0 and touched is not None:
+                return 0.0, (touched + np.array([pose.x_m, pose.y_m]) if kept else None)
+        return candidate, limit if candidate == lead else None
+
+
+_DEPTH_TOLERANCE_M = 0.005  # a way this little deeper into the berth than braking's is no deeper
+_ALIGNED = math.sin(math.radians(1.0))  # velocity this close to the setpoint's bearing: on its line
+
+
+def stop_path(velocity_xy: tuple[float, float], target_xy: tuple[float, float], params: LeadParams) -> FloatArray:
+    """Where the vehicle goes (relative to where it is, in ``params.model_step_s`` steps) if the
+    setpoint stayed at ``target_xy``: it coasts ``model_delay_s``, then flies to it as fast as it
+    can still stop there, changing its velocity at ``model_accel_mps2`` at most."""
+    dt, accel = params.model_step_s, params.model_accel_mps2
+    vx, vy = velocity_xy
+    tx, ty = target_xy
+    x = y = 0.0
+    out = [(0.0, 0.0)]
+    steps = int(round(params.model_horizon_s / dt))
+    coast = int(round(params.model_delay_s / dt))
+    for k in range(steps):
+        if k >= coast:
+            ex, ey = tx - x, ty - y
+            dist = math.hypot(ex, ey)
+            speed = math.sqrt(2.0 * accel * dist)
+            wx, wy = (ex / dist * speed, ey / dist * speed) if dist > 1e-9 else (0.0, 0.0)
+            ax, ay = wx - vx, wy - vy
+            dv = math.hypot(ax, ay)
+            if dv > accel * dt:
+                ax, ay = ax * accel * dt / dv, ay * accel * dt / dv
+            vx, vy = vx + ax, vy + ay
+            if dist < 0.01 and math.hypot(vx, vy) < 0.02:
+                break
+            # Heading straight for it, slow enough to stop on it: the rest is the setpoint's own
+            # line, checked already.
+            now = math.hypot(vx, vy)
+            if now <= speed and vx * ex + vy * ey > 0.0 and abs(vx * ey - vy * ex) <= _ALIGNED * now * dist:
+                out.append((tx, ty))
+                break
+        x, y = x + vx * dt, y + vy * dt
+        out.append((x, y))
+    return np.array(out)
+
+
+def _touches(
+    path: FloatArray, sets: list[tuple[FloatArray, float, bool, bool]]
+) -> list[tuple[float, FloatArray | None]]:
+    """For each set, how far the way ``path`` comes inside its contact distance of a return (0
+    when it keeps clear) and that return (relative; None when clear)."""
+    lo, hi = path.min(axis=0), path.max(axis=0)
+    out: list[tuple[float, FloatArray | None]] = []
+    for rel, contact, _, _ in sets:
+        near = np.all((rel > lo - contact) & (rel < hi + contact), axis=1)
+        if not near.any():
+            out.append((0.0, None))
+            continue
+        pts = rel[near]
+        closest = np.sqrt(((path[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2).min(axis=0))
+        i = int(np.argmin(closest))
+        depth = contact - float(closest[i])
+        out.append((depth, pts[i]) if depth > 0.0 else (0.0, None))
+    return out
