@@ -44,7 +44,7 @@ class LeadParams:
     # seed 2). The newest scan's returns keep the plain margin: it is ahead, where speed is.
     memory_margin_m: float = 0.05
     stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
-    moving_mps: float = 0.1  # above this speed the way momentum takes is checked too
+    moving_mps: float = 0.1  # above this speed the motion is checked too (its predicted way or its line)
     # The contact radius grows by this many seconds of speed: at speed the vehicle does not hold
     # a line to the centimetre (a turn, drift, the autopilot's own tracking), and a corner its
     # line passes 0.3 m from at 1.5 m/s is one it may hit; it cannot brake in time once it sees it.
@@ -61,12 +61,12 @@ class LeadParams:
     # ArduPilot's WPNAV_ACCEL to 2.5; the simulated vehicle's is 1). That way must keep the berth,
     # sampled every ``model_step_s`` for up to ``model_horizon_s``.
     model_accel_mps2: float = 1.0
-    # Off, the motion's straight line is checked instead of the predicted way (the companion's
-    # tuning without a SLAM back end: see companion.app.tuning_for).
-    predict_way: bool = True
     model_delay_s: float = 0.1
     model_step_s: float = 0.05
     model_horizon_s: float = 4.0
+    # Off, the motion's straight line is checked instead of the predicted way (the companion's
+    # tuning without a SLAM back end: see companion.app.tuning_for).
+    predict_way: bool = True
 
 
 def limit_lead(
