@@ -84,9 +84,10 @@ def test_a_goal_in_unknown_space_is_not_reachable():
     assert reach.path_to(np.array([2.0, 5.0])) is None  # beside the room, never seen
 
 
-def test_views_rasterised_one_by_one_give_the_cells_of_their_union():
-    """The grid of a neighbourhood is built from its views without their union: the same free
-    cells, but for centres within a millimetre of an edge."""
+def test_views_rasterised_in_batches_give_the_cells_of_their_union():
+    """The grid of a neighbourhood is built from its views without their union (in batches of
+    1, 2, 3, ... views, each testing only the cells earlier ones left): the same free cells, but
+    for centres within a millimetre of an edge."""
     rng = np.random.default_rng(3)
     views = []
     for _ in range(12):

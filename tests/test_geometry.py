@@ -6,7 +6,7 @@ import shapely
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.core.geometry import Pose2, first_contact, wrap_angle
+from companion.core.geometry import Pose2, apply_grouped, first_contact, wrap_angle
 
 coord = st.floats(-100, 100, allow_nan=False)
 angle = st.floats(-10, 10, allow_nan=False)
@@ -47,6 +47,18 @@ def test_inverse_undoes_apply(a):
     pts = np.array([[0.0, 0.0], [1.5, -2.0], [10.0, 3.0]])
     back = a.inverse().apply(a.apply(pts))
     assert np.allclose(back, pts, atol=1e-6)
+
+
+def test_grouped_points_move_the_same_through_poses_or_their_rows():
+    """Poses given as rows of x, y, yaw (as the graph's cached walks hold them) move each group
+    to the bit as the Pose2 objects do, and each group through its own pose."""
+    rng = np.random.default_rng(5)
+    frames = [Pose2(*rng.uniform(-5, 5, 2), rng.uniform(-3, 3)) for _ in range(4)]
+    groups = [rng.uniform(-2, 2, (n, 2)) for n in (3, 0, 5, 1)]
+    rows = np.array([(f.x_m, f.y_m, f.yaw_rad) for f in frames])
+    by_objects, by_rows = apply_grouped(frames, groups), apply_grouped(rows, groups)
+    assert np.array_equal(by_objects, by_rows)
+    assert np.allclose(by_rows[3:8], frames[2].apply(groups[2]), atol=1e-12)
 
 
 def test_first_contact_is_where_and_which_point_the_disc_would_touch():

@@ -130,6 +130,24 @@ def test_reached_stays_the_walk_as_the_graph_grows_and_closes_loops():
                 assert mine == walk
 
 
+def test_reached_arrays_are_shared_read_only_until_the_walk_grows():
+    """Every caller gets the same cached arrays, so none may write to them; a new leaf gives new
+    arrays with it."""
+    g = PoseGraph()
+    for k in range(3):
+        g.add_keyframe(k)
+    g.add_edge(0, 1, Pose2(1.0, 0.0, 0.0), EdgeType.ODOMETRY)
+    g.add_edge(1, 2, Pose2(1.0, 0.0, 0.5), EdgeType.ODOMETRY)
+    first = g.reached(0)
+    assert g.reached(0) is first
+    with pytest.raises(ValueError):
+        first.poses[0, 0] = 9.0
+    g.add_keyframe(3)
+    g.add_edge(2, 3, Pose2(1.0, 0.0, 0.0), EdgeType.ODOMETRY)
+    grown = g.reached(0)
+    assert grown is not first and 3 in grown.ids.tolist() and 3 not in first.ids.tolist()
+
+
 def test_a_keyframe_as_many_hops_either_way_is_placed_through_the_loop_closure():
     """Keyframe 2 is two hops from 4 along odometry (4-3-2) and two through a loop closure
     (4-1-2). Odometry carries every metre's drift; a loop closure is measured. The walk, paths

@@ -92,17 +92,22 @@ class Pose2:
         return math.hypot(other.x_m - self.x_m, other.y_m - self.y_m)
 
 
-def apply_each(poses: list[Pose2], points_xy: FloatArray, owner: NDArray[np.intp]) -> FloatArray:
+def apply_each(poses: list[Pose2] | FloatArray, points_xy: FloatArray, owner: NDArray[np.intp]) -> FloatArray:
     """Map each point through the pose of its owner (``points_xy[i]`` through ``poses[owner[i]]``)
-    in one vectorised pass: many keyframes' points into one frame at once."""
-    xyt = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses], dtype=np.float64).reshape(-1, 3)[owner]
+    in one vectorised pass: many keyframes' points into one frame at once. ``poses`` may also be
+    rows of ``x_m, y_m, yaw_rad`` (as :class:`~companion.core.pose_graph.Reached` holds them)."""
+    if isinstance(poses, np.ndarray):
+        xyt = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[owner]
+    else:
+        xyt = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses], dtype=np.float64).reshape(-1, 3)[owner]
     c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
     x, y = points_xy[:, 0], points_xy[:, 1]
     return np.column_stack((c * x - s * y + xyt[:, 0], s * x + c * y + xyt[:, 1]))
 
 
-def apply_grouped(poses: list[Pose2], groups: list[FloatArray]) -> FloatArray:
-    """Map each (N_j, 2) group of points through ``poses[j]``, all groups stacked in one array."""
+def apply_grouped(poses: list[Pose2] | FloatArray, groups: list[FloatArray]) -> FloatArray:
+    """Map each (N_j, 2) group of points through ``poses[j]``, all groups stacked in one array
+    (``poses`` as :func:`apply_each` takes them)."""
     owner = np.repeat(np.arange(len(groups)), [g.shape[0] for g in groups])
     return apply_each(poses, np.vstack(groups).reshape(-1, 2), owner)
 

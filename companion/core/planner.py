@@ -653,22 +653,15 @@ class FrontierPlanner:
         key = (frame_id, len(local_map), local_map.loop_closures)
         if self._looked_memo is not None and self._looked_memo[0] == key:
             return self._looked_memo[1]
-        levels = [0]
-
-        def near(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
-            """Every keyframe up to ``max_hops`` hops (the walk asks once per hop count)."""
-            levels[0] += 1
-            return np.full(len(ids), levels[0] <= max_hops, dtype=bool)
-
+        # The graph's cached walk (closing through the graph walks it too), not a walk of its own.
+        reach = local_map.graph.reached(frame_id)
+        near = (reach.hops <= max_hops) & np.isin(reach.ids, np.fromiter(self._looked, dtype=np.intp))
         out = []
-        for visit in local_map.graph.walk_levels(frame_id, near):
-            places = self._looked.get(visit.keyframe_id)
-            if places is None:
-                continue
-            at = np.array(places)
-            xy = visit.pose_in_start.apply(at[:, :2])
-            yaw = at[:, 2] + visit.pose_in_start.yaw_rad
-            out.append(np.column_stack((xy, np.cos(yaw), np.sin(yaw))))
+        for k, (x, y, yaw_rad) in zip(reach.ids[near], reach.poses[near], strict=True):
+            at = np.array(self._looked[int(k)])
+            pose = Pose2(float(x), float(y), float(yaw_rad))
+            yaw = at[:, 2] + pose.yaw_rad
+            out.append(np.column_stack((pose.apply(at[:, :2]), np.cos(yaw), np.sin(yaw))))
         looked = np.vstack(out) if out else np.zeros((0, 4))
         self._looked_memo = (key, looked)
         return looked

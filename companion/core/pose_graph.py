@@ -49,7 +49,8 @@ class Visit:
 class Reached:
     """Every keyframe a breadth-first walk from one keyframe reaches (itself included), as arrays
     in no particular order: ids, hops from the start, and poses in the start's frame as rows of
-    ``x_m, y_m, yaw_rad``, each composed along the walk's first path (as :meth:`PoseGraph.walk`)."""
+    ``x_m, y_m, yaw_rad``, each composed along the walk's first path (as :meth:`PoseGraph.walk`).
+    Read-only: the graph hands the same arrays to every caller until the walk grows."""
 
     ids: NDArray[np.intp]
     hops: NDArray[np.intp]
@@ -62,11 +63,23 @@ class _ReachedCache:
     index: dict[int, int] = field(default_factory=dict)  # keyframe id -> row
     hops: list[int] = field(default_factory=list)
     poses: list[tuple[float, float, float]] = field(default_factory=list)  # x_m, y_m, yaw_rad
+    arrays: Reached | None = None  # the same as arrays (read-only), until the walk grows
 
     def add(self, keyframe_id: int, hops: int, pose: tuple[float, float, float]) -> None:
         self.index[keyframe_id] = len(self.hops)
         self.hops.append(hops)
         self.poses.append(pose)
+        self.arrays = None
+
+    def as_arrays(self) -> Reached:
+        if self.arrays is None:
+            ids = np.fromiter(self.index, dtype=np.intp, count=len(self.index))
+            hops = np.array(self.hops, dtype=np.intp)
+            poses = np.array(self.poses, dtype=np.float64).reshape(-1, 3)
+            for a in (ids, hops, poses):
+                a.flags.writeable = False  # shared by every caller until the walk grows
+            self.arrays = Reached(ids, hops, poses)
+        return self.arrays
 
 
 class PoseGraph:
@@ -195,11 +208,7 @@ class PoseGraph:
         self._reached[start_id] = cache  # newest last: the oldest go first
         while len(self._reached) > self.max_cached_walks:
             del self._reached[next(iter(self._reached))]
-        return Reached(
-            np.fromiter(cache.index, dtype=np.intp, count=len(cache.index)),
-            np.array(cache.hops, dtype=np.intp),
-            np.array(cache.poses, dtype=np.float64).reshape(-1, 3),
-        )
+        return cache.as_arrays()
 
     def _walk_all(self, start_id: int) -> _ReachedCache:
         """:meth:`walk` without a filter, on plain floats (no object per keyframe): the same
