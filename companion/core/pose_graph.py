@@ -63,12 +63,15 @@ class _ReachedCache:
     index: dict[int, int] = field(default_factory=dict)  # keyframe id -> row
     hops: list[int] = field(default_factory=list)
     poses: list[tuple[float, float, float]] = field(default_factory=list)  # x_m, y_m, yaw_rad
-    arrays: Reached | None = None  # the same as arrays (read-only), until the walk grows
+    parents: list[int] = field(default_factory=list)  # row of the keyframe each was found from (-1)
+    walked: int = 0  # rows below this are in the walk's queue order; later ones are leaves added
+    arrays: Reached | None = None  # the walk as :class:`Reached` (read-only), until it grows
 
-    def add(self, keyframe_id: int, hops: int, pose: tuple[float, float, float]) -> None:
+    def add(self, keyframe_id: int, hops: int, pose: tuple[float, float, float], parent: int) -> None:
         self.index[keyframe_id] = len(self.hops)
         self.hops.append(hops)
         self.poses.append(pose)
+        self.parents.append(parent)
         self.arrays = None
 
     def as_arrays(self) -> Reached:
@@ -217,8 +220,8 @@ class PoseGraph:
         if start_id not in self._adjacency:
             raise GraphError(f"keyframe {start_id} is not in the graph")
         cache = _ReachedCache(len(self._edges))
-        cache.add(start_id, 0, (0.0, 0.0, 0.0))
-        index, hops, poses, adjacency = cache.index, cache.hops, cache.poses, self._adjacency
+        cache.add(start_id, 0, (0.0, 0.0, 0.0), -1)
+        index, hops, poses, parents, adjacency = cache.index, cache.hops, cache.poses, cache.parents, self._adjacency
         order = [start_id]
         cos, sin, pi, tau = math.cos, math.sin, math.pi, 2.0 * math.pi
         for row, kf_id in enumerate(order):  # grows as the walk goes: a breadth-first queue
@@ -231,16 +234,19 @@ class PoseGraph:
                 index[nbr] = len(order)
                 order.append(nbr)
                 hops.append(h)
+                parents.append(row)
                 rx, ry = rel.x_m, rel.y_m
                 poses.append((x + c * rx - s * ry, y + s * rx + c * ry, (yaw + rel.yaw_rad + pi) % tau - pi))
+        cache.walked = len(order)
         return cache
 
     def _extend(self, cache: _ReachedCache) -> bool:
-        """Add the leaves hung on since ``cache`` was made; False when an edge did more."""
+        """Add the leaves hung on since ``cache`` was made, and pass over edges that change no
+        first path; False when an edge did more."""
         for edge in self._edges[cache.edges_seen :]:
             a_in, b_in = edge.from_id in cache.index, edge.to_id in cache.index
             if a_in == b_in:
-                if a_in:
+                if a_in and not _keeps_walk(cache, cache.index[edge.from_id], cache.index[edge.to_id]):
                     return False  # joins two reached keyframes: first paths may change
                 continue  # joins two unreached ones: judged when an edge reaches them
             parent, leaf, rel = (
@@ -250,7 +256,7 @@ class PoseGraph:
                 return False  # not a leaf: it may bring others along
             row = cache.index[parent]
             leaf_pose = Pose2(*cache.poses[row]).compose(rel)
-            cache.add(leaf, cache.hops[row] + 1, (leaf_pose.x_m, leaf_pose.y_m, leaf_pose.yaw_rad))
+            cache.add(leaf, cache.hops[row] + 1, (leaf_pose.x_m, leaf_pose.y_m, leaf_pose.yaw_rad), row)
         cache.edges_seen = len(self._edges)
         return True
 
@@ -289,3 +295,20 @@ class PoseGraph:
             if nbr == b:
                 return rel
         raise GraphError(f"no edge between {a} and {b}")
+
+
+def _keeps_walk(cache: _ReachedCache, row_a: int, row_b: int) -> bool:
+    """Whether a new edge between two reached keyframes (rows of ``cache``) leaves the walk as it
+    is: when the walk takes either end from its queue, the other is found already, so the edge
+    is passed over, wherever it sits in their adjacency. So it is when both are as many hops
+    away (every keyframe of a hop count is found before the first of them is taken), or one hop
+    apart with the farther one found from a keyframe taken before the nearer one (in the walk's
+    queue order, which leaves added since do not have). A loop closure in a place the graph
+    already joins tightly is often so; the others make the next call walk afresh."""
+    hops_a, hops_b = cache.hops[row_a], cache.hops[row_b]
+    if hops_a == hops_b:
+        return True
+    if abs(hops_a - hops_b) != 1:
+        return False
+    near, far = (row_a, row_b) if hops_a < hops_b else (row_b, row_a)
+    return cache.parents[far] < near < cache.walked
