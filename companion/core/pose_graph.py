@@ -75,6 +75,7 @@ class _ReachedCache:
         self.arrays = None
 
     def as_arrays(self) -> Reached:
+        """The walk as :class:`Reached`, built once each time it grows."""
         if self.arrays is None:
             ids = np.fromiter(self.index, dtype=np.intp, count=len(self.index))
             hops = np.array(self.hops, dtype=np.intp)
