@@ -112,9 +112,10 @@ def apply_grouped(poses: list[Pose2] | FloatArray, groups: list[FloatArray]) -> 
     return apply_each(poses, np.vstack(groups).reshape(-1, 2), owner)
 
 
-def move_each(poses: list[Pose2], geometries: NDArray[np.object_]) -> NDArray[np.object_]:
+def move_each(poses: list[Pose2] | FloatArray, geometries: NDArray[np.object_]) -> NDArray[np.object_]:
     """Map ``geometries[i]`` through ``poses[i]`` (copies; one shapely call for all of them, where
-    :meth:`Pose2.move` in a loop costs a call per geometry)."""
+    :meth:`Pose2.move` in a loop costs a call per geometry; ``poses`` as :func:`apply_each` takes
+    them)."""
     _, owner = shapely.get_coordinates(geometries, return_index=True)
     moved: NDArray[np.object_] = shapely.transform(geometries, lambda xy: apply_each(poses, xy, owner))
     return moved

@@ -413,23 +413,22 @@ class LocalMap:
 
         def overlaps(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
             """Which of these views, at these poses, overlap this one (all at once)."""
-            others = [self.keyframes[k] for k in ids]
-            xy = np.array([(p.x_m, p.y_m) for p in poses]).reshape(-1, 2)
-            radii = np.array([o.radius_m for o in others])
-            out: NDArray[np.bool_] = np.hypot(xy[:, 0], xy[:, 1]) <= kf.radius_m + radii
+            rows = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses]).reshape(-1, 3)
+            radii = np.asarray(self._radii_m)[ids]
+            out: NDArray[np.bool_] = np.hypot(rows[:, 0], rows[:, 1]) <= kf.radius_m + radii
             near = np.flatnonzero(out)
             if near.size == 0:
                 return out
             # A corner of the other view inside this one settles it without building the moved
             # polygon (most neighbours overlap a lot); the exact test only for the rest.
-            corners = [others[i].corners_xy for i in near]
-            pts = apply_grouped([poses[i] for i in near], corners)
+            corners = [self.keyframes[ids[i]].corners_xy for i in near]
+            pts = apply_grouped(rows[near], corners)
             owner = np.repeat(np.arange(near.size), [c.shape[0] for c in corners])
             inside = np.bincount(owner, shapely.contains_xy(shape, pts[:, 0], pts[:, 1]), minlength=near.size) > 0
             rest = near[~inside]
             if rest.size:
-                shapes = np.array([others[i].polygon.shape for i in rest], dtype=object)
-                out[rest] = shapely.intersects(shape, move_each([poses[i] for i in rest], shapes))
+                shapes = np.array([self.keyframes[ids[i]].polygon.shape for i in rest], dtype=object)
+                out[rest] = shapely.intersects(shape, move_each(rows[rest], shapes))
             return out
 
         visits = self.graph.walk_levels(kf_id, overlaps, self.params.neighbourhood_bridge_hops)
