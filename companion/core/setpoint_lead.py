@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -124,6 +125,15 @@ def _within(setpoint: Setpoint, pose: Pose2, lead_m: float) -> Setpoint:
     return Setpoint(pose.x_m + k * dx, pose.y_m + k * dy, setpoint.yaw_rad)
 
 
+class _ReturnSet(NamedTuple):
+    """One set of returns the lead keeps clear of (the newest scan's, or the remembered ones)."""
+
+    rel_xy: FloatArray  # relative to the vehicle
+    contact_m: float  # the berth the way must keep from them
+    remembered: bool
+    tight: bool  # the vehicle is already closer to one than the body's plain berth (a tight door)
+
+
 def _lead_m(
     setpoint: Setpoint,
     pose: Pose2,
@@ -144,14 +154,14 @@ def _lead_m(
         directions.append(velocity_xy)  # the motion's straight line instead of its predicted way
     remembered = np.zeros((0, 2)) if remembered_xy is None else remembered_xy
     limit: FloatArray | None = None
-    sets: list[tuple[FloatArray, float, bool, bool]] = []  # returns, contact distance, remembered, tight
+    sets: list[_ReturnSet] = []
     for points, radius, kept in ((returns_xy, reach, False), (remembered, reach + params.memory_margin_m, True)):
         if points.shape[0] == 0:
             continue
         rel = points - [pose.x_m, pose.y_m]
         nearest = float(np.min(np.hypot(rel[:, 0], rel[:, 1])))
         contact = min(radius, 0.95 * nearest)
-        sets.append((rel, contact, kept, nearest < body_radius_m + params.contact_margin_m))
+        sets.append(_ReturnSet(rel, contact, kept, nearest < body_radius_m + params.contact_margin_m))
         for direction in directions:
             travel, i = first_contact(rel, direction, contact)
             allowed = max(0.0, travel - params.stop_margin_m)
@@ -173,14 +183,14 @@ def _lead_m(
             if braking is None:
                 braking = _touches(stop_path(velocity_xy, (0.0, 0.0), params), sets)
             if any(
-                depth > 0.0 and not (tight and depth <= brake + _DEPTH_TOLERANCE_M)
-                for (depth, _), (brake, _), (_, _, _, tight) in zip(touches, braking, sets, strict=True)
+                depth > 0.0 and not (returns.tight and depth <= brake + _DEPTH_TOLERANCE_M)
+                for (depth, _), (brake, _), returns in zip(touches, braking, sets, strict=True)
             ):
                 candidate = 0.0 if candidate < 0.1 else 0.5 * candidate
                 continue
         if candidate == 0.0:  # braking, it may still come into the berth: the deepest return holds it
             depth, touched, kept = max(
-                ((d, t, k) for (d, t), (_, _, k, _) in zip(touches, sets, strict=True)), key=lambda dtk: dtk[0]
+                ((d, t, r.remembered) for (d, t), r in zip(touches, sets, strict=True)), key=lambda dtk: dtk[0]
             )
             if depth > 0.0 and touched is not None:
                 return 0.0, (touched + np.array([pose.x_m, pose.y_m]) if kept else None)
@@ -226,9 +236,7 @@ def stop_path(velocity_xy: tuple[float, float], target_xy: tuple[float, float], 
     return np.array(out)
 
 
-def _touches(
-    path: FloatArray, sets: list[tuple[FloatArray, float, bool, bool]]
-) -> list[tuple[float, FloatArray | None]]:
+def _touches(path: FloatArray, sets: list[_ReturnSet]) -> list[tuple[float, FloatArray | None]]:
     """For each set, how far the way ``path`` comes inside its contact distance of a return (0
     when it keeps clear) and that return (relative; None when clear)."""
     lo, hi = path.min(axis=0), path.max(axis=0)
