@@ -130,6 +130,39 @@ def test_reached_stays_the_walk_as_the_graph_grows_and_closes_loops():
                 assert mine == walk
 
 
+def test_reached_to_a_depth_holds_every_keyframe_that_near_as_a_whole_walk_does():
+    """A walk asked to go only ``max_hops`` deep (kept, extended, or walked afresh) must hold
+    every keyframe within that many hops, with the whole walk's hops and pose to the bit, and
+    nothing the whole walk does not say; asked deeper than it went, it walks again."""
+    import random
+
+    rng = random.Random(5)
+    for _ in range(60):
+        g = PoseGraph()
+        g.add_keyframe(0)
+        n = 1
+        for _ in range(50):
+            rel = Pose2(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-3, 3))
+            if rng.random() < 0.7 or n < 3:
+                g.add_keyframe(n)
+                g.add_edge(rng.randrange(n) if rng.random() < 0.2 else n - 1, n, rel, EdgeType.ODOMETRY)
+                n += 1
+            else:
+                a, b = rng.sample(range(n), 2)
+                g.add_edge(a, b, rel, EdgeType.LOOP_CLOSURE)
+            for start in rng.sample(range(n), min(3, n)):
+                depth = rng.choice([None, 1, 2, 4, 8])
+                got = g.reached(start, depth)
+                mine = {int(k): (int(h), tuple(p)) for k, h, p in zip(got.ids, got.hops, got.poses, strict=True)}
+                walk = {
+                    v.keyframe_id: (v.hops, (v.pose_in_start.x_m, v.pose_in_start.y_m, v.pose_in_start.yaw_rad))
+                    for v in g.walk(start)
+                }
+                within = {k: v for k, v in walk.items() if depth is None or v[0] <= depth}
+                assert {k: v for k, v in mine.items() if k in within} == within
+                assert all(walk[k] == v for k, v in mine.items())
+
+
 def test_reached_arrays_are_shared_read_only_until_the_walk_grows():
     """Every caller gets the same cached arrays, so none may write to them; a new leaf gives new
     arrays with it."""

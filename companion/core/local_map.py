@@ -310,7 +310,7 @@ class LocalMap:
         if idx.size == 0:
             return 0
         p = self.params
-        reach = self.graph.reached(keyframe_id)
+        reach = self.graph.reached(keyframe_id, self._chain_hops())
         ids, hops, poses = reach.ids, reach.hops, reach.poses
         radii = np.asarray(self._radii_m)[ids]
         test = (ids >= since_id) & (ids != keyframe_id) & (hops <= p.chain_max_hops)
@@ -388,6 +388,14 @@ class LocalMap:
         kf.close(idx[seen])
         kf.close(idx[on_wall], VertexKind.OBSTACLE)
         return int(np.count_nonzero(seen | on_wall))
+
+    def _chain_hops(self) -> int:
+        """The longest chain :meth:`close_through_graph` may close through: ``chain_max_hops``,
+        or (where views past the drift margin's cap close nothing) the last hop the cap covers."""
+        p = self.params
+        if p.close_new_through_graph or p.chain_closes_past_cap or p.chain_margin_per_hop_m <= 0.0:
+            return p.chain_max_hops
+        return min(p.chain_max_hops, int(p.chain_max_margin_m / p.chain_margin_per_hop_m) + 1)
 
     def close_frontiers(self, keyframe_id: int, indices: NDArray[np.intp], kind: VertexKind = VertexKind.FREE) -> None:
         """Close frontier vertices: looked at, nothing beyond them to explore (``kind`` obstacle

@@ -654,7 +654,7 @@ class FrontierPlanner:
         if self._looked_memo is not None and self._looked_memo[0] == key:
             return self._looked_memo[1]
         # The graph's cached walk (closing through the graph walks it too), not a walk of its own.
-        reach = local_map.graph.reached(frame_id)
+        reach = local_map.graph.reached(frame_id, max_hops)
         near = (reach.hops <= max_hops) & np.isin(reach.ids, np.fromiter(self._looked, dtype=np.intp))
         out = []
         for k, (x, y, yaw_rad) in zip(reach.ids[near], reach.poses[near], strict=True):

@@ -66,6 +66,7 @@ class _ReachedCache:
     parents: list[int] = field(default_factory=list)  # row of the keyframe each was found from (-1)
     walked: int = 0  # rows below this are in the walk's queue order; later ones are leaves added
     arrays: Reached | None = None  # the walk as :class:`Reached` (read-only), until it grows
+    max_hops: int | None = None  # the walk went no deeper (None: the whole graph)
 
     def add(self, keyframe_id: int, hops: int, pose: tuple[float, float, float], parent: int) -> None:
         self.index[keyframe_id] = len(self.hops)
@@ -201,31 +202,43 @@ class PoseGraph:
                     order.append(nbr)
         return order
 
-    def reached(self, start_id: int) -> Reached:
-        """What :meth:`walk` from ``start_id`` reaches, as arrays. Kept per start, and extended
-        (not walked again) while the graph only grows by new keyframes hung on by one edge: a
-        leaf moves no one's first path, so its hops and pose follow from its parent's. Any other
-        edge (a loop closure) makes the next call walk afresh."""
+    def reached(self, start_id: int, max_hops: int | None = None) -> Reached:
+        """What :meth:`walk` from ``start_id`` reaches, as arrays: every keyframe within
+        ``max_hops`` (None: the whole graph), and maybe some farther, which callers filter out.
+        The walk stops there: most callers trust no chain longer than the drift margin, and a
+        whole walk of a large graph costs a millisecond or more (after a loop closure, afresh
+        from every keyframe asked about). Kept per start, and extended (not walked again) while
+        the graph only grows by new keyframes hung on by one edge: a leaf moves no one's first
+        path, so its hops and pose follow from its parent's. Any other edge (a loop closure)
+        makes the next call walk afresh, as does a call that asks deeper than the cached walk."""
         cache = self._reached.pop(start_id, None)
-        if cache is None or not self._extend(cache):
-            cache = self._walk_all(start_id)
+        deep_enough = cache is not None and (
+            cache.max_hops is None or (max_hops is not None and max_hops <= cache.max_hops)
+        )
+        if cache is None or not deep_enough or not self._extend(cache):
+            cache = self._walk_all(start_id, max_hops)
         self._reached[start_id] = cache  # newest last: the oldest go first
         while len(self._reached) > self.max_cached_walks:
             del self._reached[next(iter(self._reached))]
         return cache.as_arrays()
 
-    def _walk_all(self, start_id: int) -> _ReachedCache:
+    def _walk_all(self, start_id: int, max_hops: int | None = None) -> _ReachedCache:
         """:meth:`walk` without a filter, on plain floats (no object per keyframe): the same
         arithmetic as :meth:`Pose2.compose`, so the same poses to the last bit, several times
-        faster. Every loop closure makes the planner's graph checks walk afresh."""
+        faster. Every loop closure makes the planner's graph checks walk afresh. Keyframes
+        ``max_hops`` away end the walk (not expanded): a breadth-first walk meets every one
+        nearer first, by the same first paths as a whole walk."""
         if start_id not in self._adjacency:
             raise GraphError(f"keyframe {start_id} is not in the graph")
-        cache = _ReachedCache(len(self._edges))
+        cache = _ReachedCache(len(self._edges), max_hops=max_hops)
         cache.add(start_id, 0, (0.0, 0.0, 0.0), -1)
         index, hops, poses, parents, adjacency = cache.index, cache.hops, cache.poses, cache.parents, self._adjacency
         order = [start_id]
         cos, sin, pi, tau = math.cos, math.sin, math.pi, 2.0 * math.pi
+        last = math.inf if max_hops is None else max_hops
         for row, kf_id in enumerate(order):  # grows as the walk goes: a breadth-first queue
+            if hops[row] >= last:
+                break  # the queue holds only keyframes this far on from here
             x, y, yaw = poses[row]
             c, s = cos(yaw), sin(yaw)
             h = hops[row] + 1
@@ -256,6 +269,8 @@ class PoseGraph:
             if len(self._adjacency[leaf]) != 1:
                 return False  # not a leaf: it may bring others along
             row = cache.index[parent]
+            if cache.max_hops is not None and cache.hops[row] >= cache.max_hops:
+                continue  # past the walk's depth: left out, as the walk leaves it
             leaf_pose = Pose2(*cache.poses[row]).compose(rel)
             cache.add(leaf, cache.hops[row] + 1, (leaf_pose.x_m, leaf_pose.y_m, leaf_pose.yaw_rad), row)
         cache.edges_seen = len(self._edges)
