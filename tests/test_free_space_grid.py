@@ -115,3 +115,21 @@ def test_a_sliver_between_two_views_is_no_wall():
     grid = FreeSpaceGrid.build(views, np.zeros((0, 2, 2)), CLEARANCE_M)
     assert grid.origin_xy[0] == pytest.approx(x0)
     assert grid.reach_from(np.array([1.5, 1.5])).path_to(np.array([4.5, 1.5])) is not None
+
+
+def test_lines_free_in_one_pass_says_what_each_line_says_alone():
+    """The batched line-of-sight test (path shortening asks it of every point ahead at once)
+    must answer for each end exactly as the one-line test does, on lines that graze the
+    door's jambs, cross walls, leave the grid, or have no length."""
+    free, walls = corridor_and_room(1.0)
+    grid = FreeSpaceGrid.build(free, walls, CLEARANCE_M)
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        start = rng.uniform([-1.0, -1.0], [11.0, 7.0])
+        near_door = rng.uniform([5.0, 1.5], [7.0, 3.0], size=(30, 2))  # lines that graze a jamb
+        ends = np.vstack((rng.uniform([-1.0, -1.0], [11.0, 7.0], size=(30, 2)), near_door, start))
+        batch = grid.lines_free(start, ends)
+        alone = np.array([grid.line_free(start, e) for e in ends])
+        np.testing.assert_array_equal(batch, alone)
+    assert grid.lines_free(np.array([1.0, 1.0]), np.array([[9.0, 1.0]]))[0]  # along the corridor
+    assert not grid.lines_free(np.array([1.0, 1.0]), np.array([[5.0, 5.0]]))[0]  # through the wall

@@ -149,6 +149,23 @@ class FreeSpaceGrid:
         t = np.linspace(0.0, 1.0, n)[:, None]
         return bool(self.is_free(a_xy + t * (b_xy - a_xy)).all())
 
+    def lines_free(self, a_xy: FloatArray, ends_xy: FloatArray) -> NDArray[np.bool_]:
+        """:meth:`line_free` from ``a_xy`` to each of the ends (K, 2), in one pass: the same
+        points along each segment, to the bit."""
+        ends = np.asarray(ends_xy, dtype=np.float64).reshape(-1, 2)
+        if ends.shape[0] == 0:
+            return np.zeros(0, dtype=bool)
+        d = ends - a_xy
+        div = np.maximum(1, np.ceil(np.hypot(d[:, 0], d[:, 1]) / (self.cell_m / 2.0)).astype(np.intp))
+        seg = np.repeat(np.arange(ends.shape[0]), div + 1)
+        first = np.cumsum(div + 1) - (div + 1)
+        t = (np.arange(seg.size) - first[seg]) * (1.0 / div)[seg]  # np.linspace's points
+        t[first + div] = 1.0
+        free = self.is_free(a_xy + t[:, None] * d[seg])
+        blocked = np.bincount(seg, ~free, minlength=ends.shape[0])
+        out: NDArray[np.bool_] = blocked == 0
+        return out
+
     def reach_from(self, start_xy: FloatArray) -> Reach | None:
         """The wavefront from the free cell at (or nearest to) ``start_xy``; None when there is none."""
         start = self._snap(start_xy)
@@ -333,8 +350,10 @@ class Reach:
         """Greedy line of sight: from where the path stands, jump to the farthest point it sees."""
         out: list[FloatArray] = []
         cur, k = self.start_xy, 0
+        ahead = np.vstack(pts)
         while k < len(pts) - 1:
-            far = next((m for m in range(len(pts) - 1, k, -1) if self.grid.line_free(cur, pts[m])), k + 1)
+            seen = np.flatnonzero(self.grid.lines_free(cur, ahead[k + 1 :]))
+            far = k + 1 + int(seen[-1]) if seen.size else k + 1
             out.append(pts[far])
             cur, k = pts[far], far
         if not out:
