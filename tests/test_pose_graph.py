@@ -1,4 +1,6 @@
 import math
+import random
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -69,8 +71,10 @@ def _as_walk(g: PoseGraph, start: int) -> dict[int, tuple[int, tuple[float, floa
     }
 
 
-def _as_reached(g: PoseGraph, start: int) -> dict[int, tuple[int, tuple[float, float, float]]]:
-    r = g.reached(start)
+def _as_reached(
+    g: PoseGraph, start: int, max_hops: int | None = None
+) -> dict[int, tuple[int, tuple[float, float, float]]]:
+    r = g.reached(start, max_hops)
     return {int(k): (int(h), tuple(float(c) for c in p)) for k, h, p in zip(r.ids, r.hops, r.poses, strict=True)}
 
 
@@ -100,13 +104,11 @@ def test_reached_matches_the_walk_as_the_graph_grows_and_closes_loops():
     assert _as_reached(g, 0) == _as_walk(g, 0) and 10 in _as_reached(g, 0)
 
 
-def test_reached_stays_the_walk_as_the_graph_grows_and_closes_loops():
-    """``reached`` is kept per start and extended by new leaves rather than walked again; whatever
-    the graph does (leaves, branches, loop closures), it must answer as a fresh walk does, to the
-    bit."""
-    import random
-
-    rng = random.Random(3)
+def _growing_graphs(seed: int) -> Iterator[tuple[PoseGraph, list[int], random.Random]]:
+    """Sixty random pose graphs grown one change at a time (a leaf, a branch, a loop closure),
+    each yielded after every change with a few keyframes to walk from (and the generator, for
+    the caller's own draws)."""
+    rng = random.Random(seed)
     for _ in range(60):
         g = PoseGraph()
         g.add_keyframe(0)
@@ -120,47 +122,29 @@ def test_reached_stays_the_walk_as_the_graph_grows_and_closes_loops():
             else:
                 a, b = rng.sample(range(n), 2)
                 g.add_edge(a, b, rel, EdgeType.LOOP_CLOSURE)
-            for start in rng.sample(range(n), min(3, n)):
-                got = g.reached(start)
-                mine = {int(k): (int(h), tuple(p)) for k, h, p in zip(got.ids, got.hops, got.poses, strict=True)}
-                walk = {
-                    v.keyframe_id: (v.hops, (v.pose_in_start.x_m, v.pose_in_start.y_m, v.pose_in_start.yaw_rad))
-                    for v in g.walk(start)
-                }
-                assert mine == walk
+            yield g, rng.sample(range(n), min(3, n)), rng
+
+
+def test_reached_stays_the_walk_as_the_graph_grows_and_closes_loops():
+    """``reached`` is kept per start and extended by new leaves rather than walked again; whatever
+    the graph does (leaves, branches, loop closures), it must answer as a fresh walk does, to the
+    bit."""
+    for g, starts, _ in _growing_graphs(3):
+        for start in starts:
+            assert _as_reached(g, start) == _as_walk(g, start)
 
 
 def test_reached_to_a_depth_holds_every_keyframe_that_near_as_a_whole_walk_does():
     """A walk asked to go only ``max_hops`` deep (kept, extended, or walked afresh) must hold
     every keyframe within that many hops, with the whole walk's hops and pose to the bit, and
     nothing the whole walk does not say; asked deeper than it went, it walks again."""
-    import random
-
-    rng = random.Random(5)
-    for _ in range(60):
-        g = PoseGraph()
-        g.add_keyframe(0)
-        n = 1
-        for _ in range(50):
-            rel = Pose2(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-3, 3))
-            if rng.random() < 0.7 or n < 3:
-                g.add_keyframe(n)
-                g.add_edge(rng.randrange(n) if rng.random() < 0.2 else n - 1, n, rel, EdgeType.ODOMETRY)
-                n += 1
-            else:
-                a, b = rng.sample(range(n), 2)
-                g.add_edge(a, b, rel, EdgeType.LOOP_CLOSURE)
-            for start in rng.sample(range(n), min(3, n)):
-                depth = rng.choice([None, 1, 2, 4, 8])
-                got = g.reached(start, depth)
-                mine = {int(k): (int(h), tuple(p)) for k, h, p in zip(got.ids, got.hops, got.poses, strict=True)}
-                walk = {
-                    v.keyframe_id: (v.hops, (v.pose_in_start.x_m, v.pose_in_start.y_m, v.pose_in_start.yaw_rad))
-                    for v in g.walk(start)
-                }
-                within = {k: v for k, v in walk.items() if depth is None or v[0] <= depth}
-                assert {k: v for k, v in mine.items() if k in within} == within
-                assert all(walk[k] == v for k, v in mine.items())
+    for g, starts, rng in _growing_graphs(5):
+        for start in starts:
+            depth = rng.choice([None, 1, 2, 4, 8])
+            mine, walk = _as_reached(g, start, depth), _as_walk(g, start)
+            within = {k: v for k, v in walk.items() if depth is None or v[0] <= depth}
+            assert {k: v for k, v in mine.items() if k in within} == within
+            assert all(walk[k] == v for k, v in mine.items())
 
 
 def test_reached_arrays_are_shared_read_only_until_the_walk_grows():
