@@ -191,7 +191,7 @@ class LocalMap:
         self._hops: dict[int, dict[int, int]] = {}  # hops along the path each neighbour was placed by
         self._views: dict[int, LocalView] = {}
         self._next_id = 0
-        self._radii_m: list[float] = []
+        self._radii_m: FloatArray = np.zeros(0)  # by id (ids count up from 0): an array, indexed per walk level
         self.loop_closures = 0
 
     def __len__(self) -> int:
@@ -212,7 +212,7 @@ class LocalMap:
         self._next_id += 1
         kf = Keyframe(kf_id, stamp_s, odom_pose, polygon)
         self.keyframes[kf_id] = kf
-        self._radii_m.append(kf.radius_m)  # by id: ids count up from 0
+        self._radii_m = np.append(self._radii_m, kf.radius_m)  # a copy per keyframe, not per query
         self.graph.add_keyframe(kf_id)
         self._neighbours[kf_id] = {}
         self._hops[kf_id] = {}
@@ -312,7 +312,7 @@ class LocalMap:
         p = self.params
         reach = self.graph.reached(keyframe_id, self._chain_hops())
         ids, hops, poses = reach.ids, reach.hops, reach.poses
-        radii = np.asarray(self._radii_m)[ids]
+        radii = self._radii_m[ids]
         test = (ids >= since_id) & (ids != keyframe_id) & (hops <= p.chain_max_hops)
         test &= np.hypot(poses[:, 0], poses[:, 1]) <= kf.radius_m + radii
         test[test] &= ~np.isin(ids[test], np.fromiter(self._neighbours[keyframe_id], dtype=np.intp))
@@ -422,7 +422,7 @@ class LocalMap:
         def overlaps(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
             """Which of these views, at these poses, overlap this one (all at once)."""
             rows = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses]).reshape(-1, 3)
-            radii = np.asarray(self._radii_m)[ids]
+            radii = self._radii_m[ids]
             out: NDArray[np.bool_] = np.hypot(rows[:, 0], rows[:, 1]) <= kf.radius_m + radii
             near = np.flatnonzero(out)
             if near.size == 0:
