@@ -95,6 +95,32 @@ def test_the_neighbourhood_reaches_past_a_turn_in_place_that_looked_away():
     assert neighbours_of_a(MapParams().neighbourhood_bridge_hops) == {3}
 
 
+def test_the_neighbourhood_reaches_past_a_whole_turn_in_place():
+    """A looks east; the vehicle turns a full circle on the spot (nine short views, none
+    overlapping C), then flies 3 m east and looks (C, seeing past A's arc). Nine views in a row
+    are more than the bridge allows; joined by edges that do not move, they are bridged all the
+    same, and C closes A's frontier ahead."""
+
+    def after_the_turn(still_m: float) -> tuple[LocalMap, int, int]:
+        m = LocalMap(MapParams(neighbourhood_still_m=still_m))
+        a = prev = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+        for k in range(1, 10):
+            prev = add_pose(m, Pose2(0.0, 0.0, k * math.pi / 5), prev, open_scan(1.0))
+        c = add_pose(m, Pose2(3.0, 0.0, 0.0), prev)
+        return m, a[0], c[0]
+
+    def ahead_of(m: LocalMap, a: int) -> np.ndarray:
+        v = m.keyframes[a].polygon.vertices_xy
+        return m.keyframes[a].kinds[(v[:, 0] > 4.5) & (np.abs(v[:, 1]) < 1.0)]
+
+    m, a, c = after_the_turn(MapParams().neighbourhood_still_m)
+    assert a in m.neighbourhood(c)
+    assert ahead_of(m, a).size and np.all(ahead_of(m, a) == VertexKind.FREE)
+    m, a, c = after_the_turn(0.0)  # each view of the turn counts: the walk stops short of A
+    assert a not in m.neighbourhood(c)
+    assert np.all(ahead_of(m, a) == VertexKind.FRONTIER)
+
+
 def test_far_apart_views_are_not_neighbours():
     m = LocalMap()
     a = add_pose(m, Pose2(0, 0, 0), None)

@@ -42,6 +42,10 @@ class MapParams:
     # The neighbourhood walk goes on through this many views in a row that do not overlap the
     # keyframe: a turn in place leaves views looking away between two that see the same place.
     neighbourhood_bridge_hops: int = 4
+    # Views joined by an edge shorter than this (a turn in place) are bridged whatever their
+    # number: the start's full turn left ten views at one spot, and the views flown on from
+    # there never met its first (east-facing) one, whose frontiers stayed open all run.
+    neighbourhood_still_m: float = 0.2
     # Closing against views outside the neighbourhood, reached along the pose graph: the vertex
     # must lie deeper inside the other view the longer the chain (drift accumulates along it),
     # at least as deep as the closing depth beyond the offset.
@@ -439,7 +443,9 @@ class LocalMap:
                 out[rest] = shapely.intersects(shape, move_each(rows[rest], shapes))
             return out
 
-        visits = self.graph.walk_levels(kf_id, overlaps, self.params.neighbourhood_bridge_hops)
+        visits = self.graph.walk_levels(
+            kf_id, overlaps, self.params.neighbourhood_bridge_hops, self.params.neighbourhood_still_m
+        )
         return {v.keyframe_id: (v.pose_in_start, v.hops) for v in visits[1:]}
 
     def _integrate(self, kf_id: int) -> None:

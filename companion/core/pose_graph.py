@@ -156,11 +156,15 @@ class PoseGraph:
         start_id: int,
         accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]],
         bridge_hops: int = 0,
+        still_m: float = 0.0,
     ) -> list[Visit]:
         """:meth:`walk`, with ``accept`` asked once per hop count for every keyframe first met at
         that count (ids and poses in the start's frame, in the walk's order), so it can test them
         all in one vectorised pass. The walk goes on through up to ``bridge_hops`` refused
-        keyframes in a row (not returned): past a turn in place, say, whose views look away."""
+        keyframes in a row (not returned): past a turn in place, say, whose views look away.
+        A refused keyframe reached by an edge shorter than ``still_m`` does not count towards
+        them: a whole turn in place (ten views at one spot) is bridged, at any length (when the
+        walk bridges at all: ``bridge_hops`` > 0)."""
         if start_id not in self._adjacency:
             raise GraphError(f"keyframe {start_id} is not in the graph")
         seen = {start_id}
@@ -176,7 +180,8 @@ class PoseGraph:
                         seen.add(nbr)
                         ids.append(nbr)
                         poses.append(visit.pose_in_start.compose(rel))
-                        misses.append(miss)
+                        moved = still_m <= 0.0 or bridge_hops == 0 or math.hypot(rel.x_m, rel.y_m) >= still_m
+                        misses.append(miss + 1 if moved else miss)
             hops = level[0][0].hops + 1
             ok = accept(ids, poses) if ids else np.zeros(0, dtype=bool)
             level = []
@@ -185,8 +190,8 @@ class PoseGraph:
                 if keep:
                     out.append(visit)
                     level.append((visit, 0))
-                elif miss < bridge_hops:
-                    level.append((visit, miss + 1))
+                elif miss <= bridge_hops:
+                    level.append((visit, miss))
         return out
 
     def order_from(self, start_id: int) -> list[int]:
