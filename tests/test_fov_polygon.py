@@ -7,7 +7,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.core.errors import ScanError
-from companion.core.fov_polygon import PolygonParams, VertexKind, in_view, on_scanned_surface, scan_to_polygon
+from companion.core.fov_polygon import (
+    PolygonParams,
+    VertexKind,
+    behind_scanned_surface,
+    in_view,
+    on_scanned_surface,
+    scan_to_polygon,
+)
 from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan
 from sitl.depth_sensor import cast_rays
@@ -198,6 +205,9 @@ def test_on_scanned_surface_is_where_the_ray_through_a_point_returned_at_its_ran
     )
     pts = sensor.apply(body)
     assert on_scanned_surface(s, sensor, pts, 0.15, 0.02).tolist() == [True, False, False, False, False]
+    # Hidden behind the surface by more than 0.3 m: only the point 1 m behind the wall.
+    assert behind_scanned_surface(s, sensor, pts, 0.3, 0.02).tolist() == [False, False, True, False, False]
+    assert not behind_scanned_surface(s, sensor, sensor.apply(np.array([[3.2, 0.0]])), 0.3, 0.02)[0]
 
 
 def test_an_occlusion_frontier_is_not_taken_for_surface():

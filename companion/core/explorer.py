@@ -22,6 +22,7 @@ from companion.core.errors import CoreError
 from companion.core.fov_polygon import (
     FovPolygon,
     PolygonParams,
+    behind_scanned_surface,
     in_view,
     on_scanned_surface,
     returns_xy,
@@ -246,6 +247,7 @@ class Explorer:
         live = None
         live_view: Callable[[], shapely.Geometry] | None = None
         live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
+        live_hidden: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
         if self._live is not None:
             pose_at_scan, returns, newest = self._live
             scan_pose = self.anchor.between(pose_at_scan)
@@ -259,13 +261,26 @@ class Explorer:
                 margin = self.params.polygon.frontier_range_tolerance_m
                 return on_scanned_surface(newest, scan_pose, points_xy, tol_m, margin)
 
+            def live_hidden(points_xy: FloatArray, depth_m: float) -> NDArray[np.bool_]:
+                margin = self.params.polygon.frontier_range_tolerance_m
+                return behind_scanned_surface(newest, scan_pose, points_xy, depth_m, margin)
+
         velocity = self._velocity_in_frame(odom)
         if looking_around:
             decision = self._look_around(odom)
         else:
             half_fov = None if self._live is None else _half_fov_rad(self._live[2])
             decision = self.planner.plan(
-                self.map, self.current_id, vehicle, odom.stamp_s, live, velocity, live_view, live_surface, half_fov
+                self.map,
+                self.current_id,
+                vehicle,
+                odom.stamp_s,
+                live,
+                velocity,
+                live_view,
+                live_surface,
+                half_fov,
+                live_hidden=live_hidden,
             )
         t = decision.target  # in the current keyframe's frame, before any relocalisation
         x, y = self.anchor.apply_point(t.x_m, t.y_m)

@@ -367,6 +367,18 @@ def on_scanned_surface(
     return surface
 
 
+def behind_scanned_surface(
+    scan: DepthScan, sensor: Pose2, points_xy: FloatArray, depth_m: float, no_return_margin_m: float
+) -> NDArray[np.bool_]:
+    """Which points the scan sees hidden behind a surface: the ray through the point returned
+    (:func:`has_return`) more than ``depth_m`` short of it."""
+    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
+    returned = has_return(scan, no_return_margin_m)[j]
+    with np.errstate(invalid="ignore"):
+        hidden: NDArray[np.bool_] = on_ray & returned & (rng - scan.ranges_m[j] > depth_m)
+    return hidden
+
+
 def in_view(scan: DepthScan, sensor: Pose2, points_xy: FloatArray) -> NDArray[np.bool_]:
     """Which points the scan has its own say about: inside the field of view, on a ray with a
     valid reading, at or beyond the minimum range (and within the maximum range where the ray

@@ -87,6 +87,9 @@ class PlannerParams:
     sidestep_lengths_m: tuple[float, ...] = (0.5, 0.8, 1.2)
     sidestep_gain_m: float = 0.3
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
+    # A goal vertex the newest scan sees this far behind a surface, once arrived, was not looked
+    # at (it lies beyond a wall: placed there by drift); closed as looked at, a room was lost.
+    hidden_depth_m: float = 0.3
     # Checking a keyframe's frontiers through the graph after a loop closure walks the whole graph
     # (1-4 ms on a map of 300-450 keyframes), and one step could ask for several: at most this many
     # per step; the others are checked on the next steps (until then they count as open).
@@ -240,6 +243,7 @@ class FrontierPlanner:
     _velocity: FloatArray = field(default_factory=lambda: np.zeros(2))
     _live_view: Callable[[], shapely.Geometry] | None = None
     _live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
+    _live_hidden: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None
     _grids: dict[float, tuple[LocalView, FreeSpaceGrid]] = field(default_factory=dict)  # by clearance
     _grid_tried: tuple[LocalView, int, int] | None = None  # (view, cell): the grid found nothing there
     _live_floor_m: float = 0.0  # see _live_floor
@@ -255,6 +259,7 @@ class FrontierPlanner:
         live_view: Callable[[], shapely.Geometry] | None = None,
         live_surface: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None,
         half_fov_rad: float | None = None,
+        live_hidden: Callable[[FloatArray, float], NDArray[np.bool_]] | None = None,
     ) -> Decision:
         """Next target for a vehicle at ``vehicle`` (in keyframe ``frame_id``'s frame).
 
@@ -267,7 +272,8 @@ class FrontierPlanner:
         ``live_surface(points, tol_m)`` says which points (same frame) the newest scan sees as
         surface: a frontier vertex there is a wall, not a frontier (nothing lies beyond it).
         ``half_fov_rad`` is the sensor's half field of view: a path must lie inside it to be flown
-        without turning first (see ``PlannerParams.turn_first_rad``).
+        without turning first (see ``PlannerParams.turn_first_rad``). ``live_hidden(points,
+        depth_m)`` says which points the newest scan sees hidden more than that behind a surface.
         """
         view = local_map.view(frame_id)
         self._turn_first_rad = self.params.turn_first_rad
@@ -280,6 +286,7 @@ class FrontierPlanner:
         self._speed_mps = float(np.hypot(*self._velocity))
         self._live_view = live_view
         self._live_surface = live_surface
+        self._live_hidden = live_hidden
         self._cooling = {k: t for k, t in self._cooling.items() if t > stamp_s}
         self._fresh_checks_left = self.params.fresh_graph_checks_per_step
         required = self._required_clearance(view, here)
@@ -338,7 +345,19 @@ class FrontierPlanner:
             # Looked at it from its goal and it stays open: the space is seen, the vertex is stale
             # (its closing view is not in its neighbourhood). So are its close neighbours. Not
             # after an approach: that only came nearer, and its new view judges what is left.
+            # Unless the vertex lies well behind the surface the vehicle faces: then the goal was
+            # placed by drift on the wrong side of a wall (a view through a door, placed in the
+            # room next door), nothing was looked at, and it is a failed try. Closed as looked
+            # at, lshape seed 2 (in a variant) lost the room behind that door: `complete` at 0.96.
             if not goal.approach:
+                vertex = pose.apply(kf.polygon.vertices_xy[goal.key.index : goal.key.index + 1])
+                hidden = self._live_hidden is not None and bool(
+                    self._live_hidden(vertex, self.params.hidden_depth_m)[0]
+                )
+                if hidden:
+                    self._failed(goal.key, stamp_s)
+                    self._drop(local_map, frame_id, here, goal.key, stamp_s)
+                    return None
                 self._close_looked_at(local_map, frame_id, goal.key)
             self.goal = None
             return None
