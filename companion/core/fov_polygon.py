@@ -352,6 +352,17 @@ def _nearest_rays(
     return rng, j, on_ray
 
 
+def _past_return_m(
+    scan: DepthScan, sensor: Pose2, points_xy: FloatArray, no_return_margin_m: float
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """How far each point lies past the return of the ray through it (negative: in front of it),
+    and whether there is such a ray that returned (:func:`has_return`; inside the field of view)."""
+    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
+    returned: NDArray[np.bool_] = on_ray & has_return(scan, no_return_margin_m)[j]
+    past: FloatArray = rng - scan.ranges_m[j]
+    return past, returned
+
+
 def on_scanned_surface(
     scan: DepthScan, sensor: Pose2, points_xy: FloatArray, tol_m: float, no_return_margin_m: float
 ) -> NDArray[np.bool_]:
@@ -359,11 +370,9 @@ def on_scanned_surface(
     through the point returned (:func:`has_return`) within ``tol_m`` of the point's range. A
     point nearer than the return is seen free, one farther is hidden behind it; neither is
     surface. Points outside the field of view, or along rays without a return, are not."""
-    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
-    ray = scan.ranges_m[j]
-    returned = has_return(scan, no_return_margin_m)[j]
+    past, returned = _past_return_m(scan, sensor, points_xy, no_return_margin_m)
     with np.errstate(invalid="ignore"):
-        surface: NDArray[np.bool_] = on_ray & returned & (np.abs(ray - rng) <= tol_m)
+        surface: NDArray[np.bool_] = returned & (np.abs(past) <= tol_m)
     return surface
 
 
@@ -372,10 +381,9 @@ def behind_scanned_surface(
 ) -> NDArray[np.bool_]:
     """Which points the scan sees hidden behind a surface: the ray through the point returned
     (:func:`has_return`) more than ``depth_m`` short of it."""
-    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
-    returned = has_return(scan, no_return_margin_m)[j]
+    past, returned = _past_return_m(scan, sensor, points_xy, no_return_margin_m)
     with np.errstate(invalid="ignore"):
-        hidden: NDArray[np.bool_] = on_ray & returned & (rng - scan.ranges_m[j] > depth_m)
+        hidden: NDArray[np.bool_] = returned & (past > depth_m)
     return hidden
 
 
