@@ -94,6 +94,7 @@ class GridPolicy:
             "frontiers_set_aside": 0,
             "frontiers_closed_on_sight": 0,
             "frontiers_closed_on_surface": 0,
+            "frontiers_closed_as_slivers": 0,
             "steps_looking_at_remembered": 0,
         }
 

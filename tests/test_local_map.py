@@ -1,10 +1,11 @@
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.core.fov_polygon import VertexKind, scan_to_polygon
+from companion.core.fov_polygon import FovPolygon, VertexKind, scan_to_polygon
 from companion.core.geometry import Pose2
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.messages import DepthScan
@@ -448,3 +449,71 @@ def test_a_shadow_edge_vertex_behind_the_face_of_a_wall_another_view_saw_is_not_
     assert _on_wall(points, ~shadow, wall, seen_from, snap, behind).tolist() == [True, True, True]
     from_below = np.array([[1.0, -1.0]])
     assert _on_wall(points * [1.0, -1.0], shadow, wall, from_below, snap, behind).tolist() == [False, True, True]
+
+
+@pytest.mark.parametrize("a_first", [True, False])
+def test_a_neighbour_that_disagrees_lends_no_wall_to_close_frontiers_on_however_near_along_the_graph(a_first):
+    """B, one hop from A, saw a wall 5 cm short of A's arc: A's arc vertices there close as that
+    wall. But when B also saw a pillar 2 m out where A saw open space to 5 m, the two views cannot
+    both be right (a loop closure 0.35 m off placed such a view two hops away, and its wall closed
+    a cave's passage: cave seed 5 `complete` at coverage 0.52): B lends A no wall, and A's arc
+    stays open. Not only for views many hops away (``misplaced_min_hops``): one bad loop-closure
+    edge is a single hop. Either way round: A's vertices against a new B's walls, or a new A's
+    against B's."""
+    kinds = []
+    for pillar in (False, True):
+        m = LocalMap()
+        ranges = np.minimum(4.9 / np.cos(BEARINGS), 5.0)  # a wall across at x = 4.9
+        if pillar:
+            ranges[20:26] = 2.0
+        b_scan = DepthScan(0.0, BEARINGS, ranges, 5.0)
+        first = add_pose(m, Pose2(0.0, 0.0, 0.0), None, None if a_first else b_scan)
+        second = add_pose(m, Pose2(0.0, 0.0, 0.0), first, b_scan if a_first else None)
+        a = m.keyframes[(first if a_first else second)[0]]
+        v = a.polygon.vertices_xy
+        ahead = (a.polygon.kinds == VertexKind.FRONTIER) & (v[:, 0] > 4.8) & (np.abs(v[:, 1]) < 0.8)
+        assert np.count_nonzero(ahead) >= 3
+        assert m.params.misplaced_min_hops > 1
+        kinds.append(a.kinds[ahead])
+    assert np.all(kinds[0] == VertexKind.OBSTACLE)
+    assert np.all(kinds[1] == VertexKind.FRONTIER)
+
+
+def hand_polygon(vertices: list[tuple[float, float]], kinds: list[VertexKind]) -> FovPolygon:
+    """A view's polygon as drawn (counter-clockwise), without a scan."""
+    import shapely
+
+    from companion.core.fov_polygon import _outward_normals
+
+    v = np.array(vertices, dtype=np.float64)
+    return FovPolygon(
+        v, np.array(kinds, dtype=np.int8), _outward_normals(v), False, shapely.Polygon(v), np.zeros(len(v), dtype=bool)
+    )
+
+
+def test_a_frontier_facing_only_a_sliver_between_a_wall_and_seen_space_closes_when_judged():
+    """A's frontier vertex at (1, 0) faces +x. B, a neighbour, saw a wall at x = 1 + gap (from
+    behind it) and the space above A: between A's edge and B's wall lies unseen space ``gap``
+    wide. At 0.25 m it is a sliver, closed when judged (and counted); at 0.8 m it stays open.
+    Nothing closes it before it is judged: no view holds the space beyond it, no wall is within
+    the snap."""
+    WALL, F, FREE = VertexKind.OBSTACLE, VertexKind.FRONTIER, VertexKind.FREE
+    a_poly = hand_polygon([(-1, -1), (1, -1), (1, 0), (1, 1), (-1, 1)], [WALL, WALL, F, FREE, FREE])
+    kinds = []
+    for gap in (0.25, 0.8):
+        wall_x = 1.0 + gap
+        b_poly = hand_polygon(
+            [(wall_x, -1), (3, -1), (3, 2), (-1, 2), (-1, 0.9), (wall_x, 0.9)], [WALL, FREE, FREE, FREE, FREE, WALL]
+        )
+        m = LocalMap()
+        a = m.add_keyframe(0.0, Pose2.identity(), a_poly)
+        m.add_keyframe(1.0, Pose2.identity(), b_poly, (a.keyframe_id, Pose2.identity()))
+        assert a.kinds[2] == VertexKind.FRONTIER
+        vertex = np.array([2])
+        assert m.unjudged_slivers(a.keyframe_id, vertex).tolist() == [2]
+        closed = m.close_slivers(a.keyframe_id, vertex)
+        assert closed.tolist() == [gap < 0.4]
+        assert m.unjudged_slivers(a.keyframe_id, vertex).size == 0  # judged once per view
+        kinds.append(int(a.kinds[2]))
+        assert m.slivers_closed == (1 if gap < 0.4 else 0)
+    assert kinds == [VertexKind.FREE, VertexKind.FRONTIER]

@@ -719,3 +719,30 @@ def test_a_goal_vertex_hidden_behind_the_wall_faced_on_arrival_is_a_failed_try_n
     planner, m, key = settle(hidden=False)
     assert m.keyframes[key.keyframe_id].kinds[key.index] != VertexKind.FRONTIER
     assert planner.attempts.get(key) is None
+
+
+def test_a_frontier_facing_only_a_sliver_is_closed_when_weighed_not_flown_to():
+    """A's only frontier vertex, at (2, 0), faces +x; B saw a wall ``gap`` beyond it (from behind)
+    and the space above A. At 0.25 m the unseen space there is a sliver: the planner closes the
+    vertex and has nothing to fly to. At 0.8 m it is the goal. Slivers are judged only in a step
+    that finds the map as the last step left it (a new keyframe makes a step dear enough): the
+    first step takes the vertex unjudged, the next one judges it."""
+    from test_local_map import hand_polygon
+
+    WALL, F, FREE = VertexKind.OBSTACLE, VertexKind.FRONTIER, VertexKind.FREE
+    a_poly = hand_polygon([(-1, -1), (2, -1), (2, 0), (2, 1), (-1, 1)], [WALL, WALL, F, FREE, FREE])
+    goals = []
+    for gap in (0.25, 0.8):
+        wall_x = 2.0 + gap
+        b_poly = hand_polygon(
+            [(wall_x, -1), (4, -1), (4, 2), (-1, 2), (-1, 0.9), (wall_x, 0.9)], [WALL, FREE, FREE, FREE, FREE, WALL]
+        )
+        m = LocalMap()
+        a = m.add_keyframe(0.0, Pose2.identity(), a_poly)
+        m.add_keyframe(1.0, Pose2.identity(), b_poly, (a.keyframe_id, Pose2.identity()))
+        planner = FrontierPlanner()
+        first = planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0)
+        assert first.goal == FrontierKey(0, 2) and a.kinds[2] == VertexKind.FRONTIER
+        goals.append(planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.1).goal)
+        assert a.kinds[2] == (VertexKind.FREE if gap < 0.4 else VertexKind.FRONTIER)
+    assert goals == [None, FrontierKey(0, 2)]

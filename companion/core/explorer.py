@@ -348,6 +348,7 @@ class Explorer:
             "frontiers_set_aside": len(self.planner.unreachable(self.map)),
             "frontiers_closed_on_sight": self.planner.closed_on_sight,
             "frontiers_closed_on_surface": self.planner.closed_on_surface,
+            "frontiers_closed_as_slivers": self.map.slivers_closed,
             "steps_looking_at_remembered": self.looks_at_remembered,
         }
 

@@ -22,6 +22,7 @@ from companion.core.errors import GraphError
 from companion.core.fov_polygon import FovPolygon, VertexKind
 from companion.core.geometry import FloatArray, Pose2, apply_grouped, move_each, point_segment_distances
 from companion.core.pose_graph import EdgeType, PoseGraph
+from companion.core.slivers import SliverParams, sliver_vertices
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,6 +72,10 @@ class MapParams:
     # each new keyframe's frontiers against every view along the graph too. It can close a real
     # frontier where drift exceeds the margin, so it is off when loop closures arrive.
     close_new_through_graph: bool = False
+    # A frontier whose unseen space beyond is only a sliver (between seen space and walls, or
+    # behind a gap between two walls' ends) is closed when the planner first weighs it: see
+    # slivers.py. ``SliverParams(reach_m=0.0)`` turns it off.
+    slivers: SliverParams = field(default_factory=SliverParams)
 
 
 @dataclass(slots=True)
@@ -144,6 +149,8 @@ class LocalView:
     obstacles: shapely.MultiLineString  # the same edges as one geometry, for distance queries
     walls_seen_from_xy: FloatArray  # (M, 2): the origin of the view that saw each edge
     _grown: shapely.Geometry | None = None
+    # neighbour -> whether it disagrees with the keyframe (LocalMap._disagreeing), asked lazily
+    disagrees: dict[int, bool] = field(default_factory=dict)
 
     @property
     def grown(self) -> shapely.Geometry:
@@ -196,7 +203,10 @@ class LocalMap:
         self._views: dict[int, LocalView] = {}
         self._next_id = 0
         self._radii_m: FloatArray = np.zeros(0)  # by id (ids count up from 0): an array, indexed per walk level
+        # keyframe -> its view when its frontiers were last judged for slivers, and which were
+        self._sliver_judged: dict[int, tuple[LocalView, set[int]]] = {}
         self.loop_closures = 0
+        self.slivers_closed = 0
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -393,6 +403,43 @@ class LocalMap:
         kf.close(idx[on_wall], VertexKind.OBSTACLE)
         return int(np.count_nonzero(seen | on_wall))
 
+    def unjudged_slivers(self, keyframe_id: int, indices: NDArray[np.intp]) -> NDArray[np.intp]:
+        """Those of the keyframe's open frontier vertices not yet judged (:meth:`close_slivers`)
+        in its current view (a view is rebuilt when its neighbourhood changes)."""
+        kf = self.keyframes[keyframe_id]
+        if self.params.slivers.reach_m <= 0.0 or indices.size == 0:
+            return indices[:0]
+        indices = indices[kf.kinds[indices] == VertexKind.FRONTIER]
+        judged = self._sliver_judged.get(keyframe_id)
+        if judged is None or judged[0] is not self._views.get(keyframe_id):
+            return indices
+        return indices[~np.isin(indices, np.fromiter(judged[1], dtype=np.intp))]
+
+    def close_slivers(self, keyframe_id: int, indices: NDArray[np.intp]) -> NDArray[np.bool_]:
+        """Close those of these open frontier vertices of the keyframe whose unseen space is only
+        a sliver, judged in its view without the views found misplaced there (slivers.py).
+        Returns which were closed."""
+        kf = self.keyframes[keyframe_id]
+        view = self.view(keyframe_id)
+        judged = self._sliver_judged.get(keyframe_id)
+        if judged is None or judged[0] is not view:
+            judged = self._sliver_judged[keyframe_id] = (view, set())
+        judged[1].update(indices.tolist())
+        hit = np.zeros(indices.size, dtype=bool)
+        ask = kf.kinds[indices] == VertexKind.FRONTIER  # building the view may have closed some
+        if not ask.any():
+            return hit
+        keep = ~self._misplaced(view)
+        per_view = [self.keyframes[k].walls.shape[0] for k in view.poses]
+        walls = view.walls_xy[np.repeat(keep, per_view)]
+        idx = indices[ask]
+        hit[ask] = sliver_vertices(
+            kf.polygon.vertices_xy[idx], kf.polygon.outward_xy[idx], view.shapes[keep], walls, self.params.slivers
+        )
+        kf.close(indices[hit])
+        self.slivers_closed += int(np.count_nonzero(hit))
+        return hit
+
     def _chain_hops(self) -> int:
         """The longest chain :meth:`close_through_graph` may close through: ``chain_max_hops``,
         or (where views past the drift margin's cap close nothing) the last hop the cap covers."""
@@ -511,21 +558,29 @@ class LocalMap:
 
     def _misplaced(self, view: LocalView) -> NDArray[np.bool_]:
         """Which of the view's keyframes (``view.poses`` order; never its own) were placed by a
-        path of ``misplaced_min_hops`` or more and disagree with its own keyframe by more than
-        ``misplaced_depth_m``: the own keyframe's walls (ends and midpoints) that deep inside the
-        other's polygon, or the other's walls inside the own one's. Returns are exact in their
-        own keyframe's frame; placed right, one view's walls lie on or beyond another's edge.
-        Placed by a drifted chain of the graph, they do not."""
+        path of ``misplaced_min_hops`` or more and disagree with its own keyframe (see
+        :meth:`_disagreeing`). Returns are exact in their own keyframe's frame; placed right, one
+        view's walls lie on or beyond another's edge. Placed by a drifted chain of the graph,
+        they do not."""
         hops = self._hops[view.keyframe_id]
-        far = np.flatnonzero([hops.get(k, 0) >= self.params.misplaced_min_hops for k in view.poses])
-        out = np.zeros(len(view.shapes), dtype=bool)
-        if far.size == 0:
-            return out
-        ids = list(view.poses)
-        theirs = [self.keyframes[ids[i]].walls for i in far]
-        frames = [view.poses[ids[i]] for i in far]
-        out[far] = self._disagree(view.keyframe_id, view.shapes[0], view.shapes[far], frames, theirs)
-        return out
+        far = [k for k in view.poses if hops.get(k, 0) >= self.params.misplaced_min_hops]
+        if not far:
+            return np.zeros(len(view.shapes), dtype=bool)
+        bad = self._disagreeing(view, far)
+        return np.array([k in bad for k in view.poses], dtype=bool)
+
+    def _disagreeing(self, view: LocalView, ids: list[int]) -> set[int]:
+        """Which of these neighbours disagree with the view's own keyframe by more than
+        ``misplaced_depth_m`` (:meth:`_disagree`), each asked once per view."""
+        todo = [k for k in dict.fromkeys(ids) if k != view.keyframe_id and k not in view.disagrees]
+        if todo:
+            order = {k: i for i, k in enumerate(view.poses)}
+            at = np.array([order[k] for k in todo], dtype=np.intp)
+            frames = [view.poses[k] for k in todo]
+            walls = [self.keyframes[k].walls for k in todo]
+            found = self._disagree(view.keyframe_id, view.shapes[0], view.shapes[at], frames, walls)
+            view.disagrees.update(zip(todo, found.tolist(), strict=True))
+        return {k for k in ids if view.disagrees.get(k, False)}
 
     def _disagree(
         self,
@@ -564,7 +619,11 @@ class LocalMap:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
         sensor's limit leaves such vertices, and nothing beyond them can ever be seen). All in
         the new keyframe's frame (its ``view``): its open vertices against every neighbour's
-        walls at once, and every neighbour's open vertices against its own walls."""
+        walls at once, and every neighbour's open vertices against its own walls.
+
+        Only between views that agree (:meth:`_disagreeing`), however few hops apart: a loop
+        closure 0.35 m off placed a view two hops away with a wall across a cave's passage, and
+        the passage's frontiers closed on it (cave seed 5: `complete` at coverage 0.52)."""
         kf = self.keyframes[kf_id]
         snap = self.params.wall_snap_m
         own_walls = kf.walls
@@ -572,7 +631,7 @@ class LocalMap:
         behind = self.params.wall_behind_m
         if own.size:
             theirs = slice(own_walls.shape[0], None)
-            on = _on_wall(
+            near = _near_walls(
                 kf.polygon.vertices_xy[own],
                 kf.polygon.on_shadow[own],
                 view.walls_xy[theirs],
@@ -580,18 +639,32 @@ class LocalMap:
                 snap,
                 behind,
             )
-            kf.close(own[on], VertexKind.OBSTACLE)
+            if near.any():
+                ids = list(view.poses)[1:]
+                owner = np.repeat(ids, [self.keyframes[k].walls.shape[0] for k in ids])
+                lenders = owner[near.any(axis=0)].tolist()
+                bad = self._disagreeing(view, lenders)
+                if bad:
+                    near[:, np.isin(owner, list(bad))] = False
+                kf.close(own[near.any(axis=1)], VertexKind.OBSTACLE)
         if own_walls.shape[0] == 0:
             return
-        poses = [pose for k, pose in view.poses.items() if k != kf_id]
-        kfs = [self.keyframes[k] for k in view.poses if k != kf_id]
+        ids = [k for k in view.poses if k != kf_id]
+        poses = [view.poses[k] for k in ids]
+        kfs = [self.keyframes[k] for k in ids]
         idx = [other.open_frontier_indices() for other in kfs]
         if not any(i.size for i in idx):
             return
         pts = apply_grouped(poses, [other.polygon.vertices_xy[i] for other, i in zip(kfs, idx, strict=True)])
         shadow = np.concatenate([other.polygon.on_shadow[i] for other, i in zip(kfs, idx, strict=True)])
         own_from = np.zeros((own_walls.shape[0], 2))  # seen from this keyframe's origin
-        _close_where(kfs, idx, _on_wall(pts, shadow, own_walls, own_from, snap, behind), VertexKind.OBSTACLE)
+        on: NDArray[np.bool_] = np.asarray(_near_walls(pts, shadow, own_walls, own_from, snap, behind).any(axis=1))
+        if on.any():
+            vertex_owner = np.repeat(ids, [i.size for i in idx])
+            bad = self._disagreeing(view, vertex_owner[on].tolist())
+            if bad:
+                on &= ~np.isin(vertex_owner, list(bad))
+        _close_where(kfs, idx, on, VertexKind.OBSTACLE)
 
 
 def _close_where(
@@ -613,7 +686,22 @@ def _on_wall(
     snap_m: float,
     behind_m: float,
 ) -> NDArray[np.bool_]:
-    """Which frontier vertices (``points_xy``) lie on one of the walls (segments (M, 2, 2), each
+    """Which frontier vertices lie on one of the walls (see :func:`_near_walls`)."""
+    on: NDArray[np.bool_] = np.asarray(
+        _near_walls(points_xy, on_shadow, segments, seen_from_xy, snap_m, behind_m).any(axis=1), dtype=bool
+    )
+    return on
+
+
+def _near_walls(
+    points_xy: FloatArray,
+    on_shadow: NDArray[np.bool_],
+    segments: FloatArray,
+    seen_from_xy: FloatArray,
+    snap_m: float,
+    behind_m: float,
+) -> NDArray[np.bool_]:
+    """(N, M): which frontier vertices (``points_xy``) lie on which walls (segments (M, 2, 2), each
     seen from the matching point of ``seen_from_xy``): within ``snap_m`` of it, and, for those on
     a shadow edge (``on_shadow``), not more than ``behind_m`` behind the face its view saw. A
     shadow edge's vertex farther behind lies beyond that wall, hidden behind an occluder: a door
@@ -622,15 +710,16 @@ def _on_wall(
     behind the door unseen (apartment seeds 2 and 4 in session 20). Other vertices (a range
     limit or the field of view's side lying on a wall) snap from either side: drift puts most of
     them a little behind the face, and asking it of them too cost 10 % of the exploration time."""
+    out = np.zeros((points_xy.shape[0], segments.shape[0]), dtype=bool)
     if segments.shape[0] == 0 or points_xy.shape[0] == 0:
-        return np.zeros(points_xy.shape[0], dtype=bool)
+        return out
     # Only the segments whose bounding box comes within the snap of the points' box can be near.
     lo, hi = points_xy.min(axis=0) - snap_m, points_xy.max(axis=0) + snap_m
     seg_lo, seg_hi = segments.min(axis=1), segments.max(axis=1)
     keep = np.all((seg_hi >= lo) & (seg_lo <= hi), axis=1)
     segments, seen_from_xy = segments[keep], seen_from_xy[keep]
     if segments.shape[0] == 0:
-        return np.zeros(points_xy.shape[0], dtype=bool)
+        return out
     near = point_segment_distances(points_xy, segments) < snap_m  # (N, M)
     if on_shadow.any():
         a, along = segments[:, 0], segments[:, 1] - segments[:, 0]
@@ -639,5 +728,5 @@ def _on_wall(
         shadow_pts = points_xy[on_shadow]
         offset = np.einsum("nmd,md->nm", shadow_pts[:, None, :] - a[None], normal) * facing[None]
         near[on_shadow] &= offset >= -behind_m
-    on: NDArray[np.bool_] = np.asarray(near.any(axis=1), dtype=bool)
-    return on
+    out[:, keep] = near
+    return out
