@@ -403,24 +403,32 @@ class LocalMap:
         kf.close(idx[on_wall], VertexKind.OBSTACLE)
         return int(np.count_nonzero(seen | on_wall))
 
-    def unjudged_slivers(self, keyframe_id: int, indices: NDArray[np.intp]) -> NDArray[np.intp]:
+    def unjudged_slivers(
+        self, keyframe_id: int, indices: NDArray[np.intp], frame_id: int | None = None
+    ) -> NDArray[np.intp]:
         """Those of the keyframe's open frontier vertices not yet judged (:meth:`close_slivers`)
-        in its current view (a view is rebuilt when its neighbourhood changes)."""
+        in the view they would be judged in now (a view is rebuilt when its neighbourhood
+        changes)."""
         kf = self.keyframes[keyframe_id]
         if self.params.slivers.reach_m <= 0.0 or indices.size == 0:
             return indices[:0]
         indices = indices[kf.kinds[indices] == VertexKind.FRONTIER]
         judged = self._sliver_judged.get(keyframe_id)
-        if judged is None or judged[0] is not self._views.get(keyframe_id):
+        view = self._judging_view(keyframe_id, frame_id, build=False)
+        if judged is None or view is None or judged[0] is not view:
             return indices
         return indices[~np.isin(indices, np.fromiter(judged[1], dtype=np.intp))]
 
-    def close_slivers(self, keyframe_id: int, indices: NDArray[np.intp]) -> NDArray[np.bool_]:
+    def close_slivers(
+        self, keyframe_id: int, indices: NDArray[np.intp], frame_id: int | None = None
+    ) -> NDArray[np.bool_]:
         """Close those of these open frontier vertices of the keyframe whose unseen space is only
-        a sliver, judged in its view without the views found misplaced there (slivers.py).
-        Returns which were closed."""
+        a sliver (slivers.py), judged without the views found misplaced: in ``frame_id``'s view
+        when it is built and holds the keyframe well placed (the planner's current view: no view
+        to build), else in the keyframe's own. Returns which were closed."""
         kf = self.keyframes[keyframe_id]
-        view = self.view(keyframe_id)
+        view = self._judging_view(keyframe_id, frame_id, build=True)
+        assert view is not None
         judged = self._sliver_judged.get(keyframe_id)
         if judged is None or judged[0] is not view:
             judged = self._sliver_judged[keyframe_id] = (view, set())
@@ -433,12 +441,29 @@ class LocalMap:
         per_view = [self.keyframes[k].walls.shape[0] for k in view.poses]
         walls = view.walls_xy[np.repeat(keep, per_view)]
         idx = indices[ask]
+        pose = view.poses[keyframe_id]
         hit[ask] = sliver_vertices(
-            kf.polygon.vertices_xy[idx], kf.polygon.outward_xy[idx], view.shapes[keep], walls, self.params.slivers
+            pose.apply(kf.polygon.vertices_xy[idx]),
+            pose.rotate(kf.polygon.outward_xy[idx]),
+            view.shapes[keep],
+            walls,
+            self.params.slivers,
         )
         kf.close(indices[hit])
         self.slivers_closed += int(np.count_nonzero(hit))
         return hit
+
+    def _judging_view(self, keyframe_id: int, frame_id: int | None, build: bool) -> LocalView | None:
+        """The view a keyframe's vertices are judged for slivers in: ``frame_id``'s, if built and
+        it holds the keyframe not misplaced, else the keyframe's own (built if asked, else None
+        when it is not)."""
+        if frame_id is not None and frame_id != keyframe_id:
+            current = self._views.get(frame_id)
+            if current is not None and keyframe_id in current.poses:
+                far = self._hops[frame_id].get(keyframe_id, 0) >= self.params.misplaced_min_hops
+                if not far or not self._disagreeing(current, [keyframe_id]):
+                    return current
+        return self.view(keyframe_id) if build else self._views.get(keyframe_id)
 
     def _chain_hops(self) -> int:
         """The longest chain :meth:`close_through_graph` may close through: ``chain_max_hops``,

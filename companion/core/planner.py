@@ -94,8 +94,8 @@ class PlannerParams:
     # (1-4 ms on a map of 300-450 keyframes), and one step could ask for several: at most this many
     # per step; the others are checked on the next steps (until then they count as open).
     fresh_graph_checks_per_step: int = 2
-    # and at most this many frontier vertices judged for slivers (0.2-0.5 ms each)
-    sliver_checks_per_step: int = 4
+    # and at most this many frontier vertices judged for slivers (about 0.5-1 ms a call)
+    sliver_checks_per_step: int = 2
     grid: GridParams = field(default_factory=GridParams)  # paths where a straight line is blocked
     goal_clearance_m: float = 0.3  # where a straight path ends keeps this clear, however close the start
     blocked_cooldown_s: float = 5.0  # a goal dropped as blocked is not taken again for this long
@@ -230,6 +230,7 @@ class FrontierPlanner:
     _fresh_checks_left: int = 0  # graph checks after a loop closure still allowed in this step
     _sliver_checks_left: int = 0  # sliver judgements still allowed in this step
     _map_at_last_plan: tuple[int, int] = (-1, -1)  # (keyframes, loop closures) when plan() last ran
+    _frame_id: int = -1  # this step's keyframe (its view is built): slivers are judged in it
     _live: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     _turn_first_rad: float = 0.0  # this step's limit (params', within the sensor's view)
     _progress_target: int | None = None
@@ -296,6 +297,7 @@ class FrontierPlanner:
         # Slivers are judged only in a step that found the map as the last one left it: a new
         # keyframe or loop closure already made this one of the dearest (its views rebuilt, its
         # frontiers weighed afresh), and a frontier not judged yet counts as open meanwhile.
+        self._frame_id = frame_id
         map_now = (len(local_map), local_map.loop_closures)
         self._sliver_checks_left = self.params.sliver_checks_per_step if map_now == self._map_at_last_plan else 0
         self._map_at_last_plan = map_now
@@ -331,7 +333,7 @@ class FrontierPlanner:
         assert goal is not None
         kf = local_map.keyframes[goal.key.keyframe_id]
         if goal.arrived_s is None:  # taken in a step that could not judge it, perhaps
-            self._judge_slivers(local_map, goal.key.keyframe_id, np.array([goal.key.index], dtype=np.intp))
+            self._judge_slivers(local_map, frame_id, goal.key.keyframe_id, np.array([goal.key.index], dtype=np.intp))
         if kf.kinds[goal.key.index] != 1 or goal.key in self.set_aside:  # closed: seen
             self.goal = None
             return None
@@ -761,18 +763,18 @@ class FrontierPlanner:
         may not overlap the current one: the vehicle has been round the block since), and not a
         sliver."""
         self._check_through_graph(local_map, key.keyframe_id)
-        self._judge_slivers(local_map, key.keyframe_id, np.array([key.index], dtype=np.intp))
+        self._judge_slivers(local_map, self._frame_id, key.keyframe_id, np.array([key.index], dtype=np.intp))
         return bool(local_map.keyframes[key.keyframe_id].kinds[key.index] == VertexKind.FRONTIER)
 
-    def _judge_slivers(self, local_map: LocalMap, keyframe_id: int, indices: NDArray[np.intp]) -> None:
+    def _judge_slivers(self, local_map: LocalMap, frame_id: int, keyframe_id: int, indices: NDArray[np.intp]) -> None:
         """Close those of these frontiers whose unseen space is only a sliver (slivers.py), as
         far as the step's budget goes; the rest count as open until a later step judges them."""
         if self._sliver_checks_left <= 0:
             return
-        todo = local_map.unjudged_slivers(keyframe_id, indices)[: self._sliver_checks_left]
+        todo = local_map.unjudged_slivers(keyframe_id, indices, frame_id)[: self._sliver_checks_left]
         if todo.size:
             self._sliver_checks_left -= todo.size
-            local_map.close_slivers(keyframe_id, todo)
+            local_map.close_slivers(keyframe_id, todo, frame_id)
 
     def _reach(self, view: LocalView, here: FloatArray, clearance_m: float | None = None) -> Reach | None:
         """The wavefront through the view's free space (with the newest returns) from ``here``,
@@ -1130,7 +1132,8 @@ class FrontierPlanner:
         if not self._has_targets(local_map, keyframe_id):
             return False
         self._check_through_graph(local_map, keyframe_id)
-        self._judge_slivers(local_map, keyframe_id, np.array(self._targets(local_map, keyframe_id), dtype=np.intp))
+        targets = np.array(self._targets(local_map, keyframe_id), dtype=np.intp)
+        self._judge_slivers(local_map, self._frame_id, keyframe_id, targets)
         return self._has_targets(local_map, keyframe_id)
 
     def _check_through_graph(self, local_map: LocalMap, keyframe_id: int) -> None:
