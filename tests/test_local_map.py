@@ -517,3 +517,29 @@ def test_a_frontier_facing_only_a_sliver_between_a_wall_and_seen_space_closes_wh
         kinds.append(int(a.kinds[2]))
         assert m.slivers_closed == (1 if gap < 0.4 else 0)
     assert kinds == [VertexKind.FREE, VertexKind.FRONTIER]
+
+
+@pytest.mark.parametrize("c_disagrees", [False, True])
+def test_a_view_that_disagrees_with_the_keyframe_does_not_judge_its_slivers(c_disagrees):
+    """As above with an 0.8 m gap (no sliver), and a third view C, one hop away, that saw all of
+    that gap but a notch 0.3 m wide straight beyond the vertex: what is left unseen is a sliver.
+    When C also saw a wall 0.5 m inside A's free space, the two cannot both be right (one bad loop
+    closure misplaces a view by that much), C does not judge, and the vertex stays open."""
+    WALL, F, FREE = VertexKind.OBSTACLE, VertexKind.FRONTIER, VertexKind.FREE
+    a_poly = hand_polygon([(-1, -1), (1, -1), (1, 0), (1, 1), (-1, 1)], [WALL, WALL, F, FREE, FREE])
+    b_poly = hand_polygon(
+        [(1.8, -1), (3, -1), (3, 2), (-1, 2), (-1, 0.9), (1.8, 0.9)], [WALL, FREE, FREE, FREE, FREE, WALL]
+    )
+    left = WALL if c_disagrees else FREE  # C's edge at x = 0.5, inside A's view
+    c_poly = hand_polygon(
+        [(0.5, -1), (1.55, -1), (1.55, -0.15), (1.0, -0.15), (1.0, 0.15), (1.55, 0.15), (1.55, 0.9), (0.5, 0.9)],
+        [left, FREE, FREE, FREE, FREE, FREE, FREE, left],
+    )
+    m = LocalMap()
+    a = m.add_keyframe(0.0, Pose2.identity(), a_poly)
+    b = m.add_keyframe(1.0, Pose2.identity(), b_poly, (a.keyframe_id, Pose2.identity()))
+    m.add_keyframe(2.0, Pose2.identity(), c_poly, (b.keyframe_id, Pose2.identity()))
+    assert m.params.misplaced_min_hops > 2
+    assert a.kinds[2] == VertexKind.FRONTIER
+    closed = m.close_slivers(a.keyframe_id, np.array([2]))
+    assert closed.tolist() == [not c_disagrees]

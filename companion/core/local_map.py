@@ -12,6 +12,7 @@ newer keyframe; no vertex is ever moved.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -437,17 +438,25 @@ class LocalMap:
         ask = kf.kinds[indices] == VertexKind.FRONTIER  # building the view may have closed some
         if not ask.any():
             return hit
-        keep = ~self._misplaced(view)
-        per_view = [self.keyframes[k].walls.shape[0] for k in view.poses]
-        walls = view.walls_xy[np.repeat(keep, per_view)]
         idx = indices[ask]
         pose = view.poses[keyframe_id]
+        vertices = pose.apply(kf.polygon.vertices_xy[idx])
+        # Only views that agree with the view's keyframe, however few hops away, judge: a view
+        # one bad loop closure misplaced may cover unseen space as seen (the views round the
+        # vertices are asked; those far away have been by _misplaced).
+        keep = ~self._misplaced(view)
+        reach = self.params.slivers.reach_m * math.sqrt(2.0)
+        lo, hi = vertices.min(axis=0) - reach, vertices.max(axis=0) + reach
+        b = shapely.bounds(view.shapes)
+        ids = list(view.poses)
+        near = np.flatnonzero(keep & np.all((b[:, 2:] >= lo) & (b[:, :2] <= hi), axis=1))
+        bad = self._disagreeing(view, [ids[i] for i in near])
+        if bad:
+            keep &= ~np.isin(np.array(ids), list(bad))
+        per_view = [self.keyframes[k].walls.shape[0] for k in ids]
+        walls = view.walls_xy[np.repeat(keep, per_view)]
         hit[ask] = sliver_vertices(
-            pose.apply(kf.polygon.vertices_xy[idx]),
-            pose.rotate(kf.polygon.outward_xy[idx]),
-            view.shapes[keep],
-            walls,
-            self.params.slivers,
+            vertices, pose.rotate(kf.polygon.outward_xy[idx]), view.shapes[keep], walls, self.params.slivers
         )
         kf.close(indices[hit])
         self.slivers_closed += int(np.count_nonzero(hit))
@@ -459,10 +468,8 @@ class LocalMap:
         when it is not)."""
         if frame_id is not None and frame_id != keyframe_id:
             current = self._views.get(frame_id)
-            if current is not None and keyframe_id in current.poses:
-                far = self._hops[frame_id].get(keyframe_id, 0) >= self.params.misplaced_min_hops
-                if not far or not self._disagreeing(current, [keyframe_id]):
-                    return current
+            if current is not None and keyframe_id in current.poses and not self._disagreeing(current, [keyframe_id]):
+                return current
         return self.view(keyframe_id) if build else self._views.get(keyframe_id)
 
     def _chain_hops(self) -> int:
