@@ -435,7 +435,10 @@ def test_a_shadow_edge_vertex_behind_the_face_of_a_wall_another_view_saw_is_not_
     wall), and stays open; in front of the face, or within range noise behind it, it is on the
     wall. A vertex of any other kind (a range limit on the wall) snaps from either side: drift
     puts most of those a little behind the face."""
-    from companion.core.local_map import _on_wall
+    from companion.core.local_map import _near_walls
+
+    def _on_wall(*args: object) -> np.ndarray:
+        return _near_walls(*args).any(axis=1)  # type: ignore[arg-type]
 
     p = MapParams()
     snap, behind = p.wall_snap_m, p.wall_behind_m
@@ -491,23 +494,32 @@ def hand_polygon(vertices: list[tuple[float, float]], kinds: list[VertexKind]) -
     )
 
 
+def sliver_map(edge_x: float, gap_m: float) -> tuple[LocalMap, int]:
+    """A, a view whose only frontier vertex (index 2) lies at (edge_x, 0) and faces +x; B, a
+    neighbour, saw a wall ``gap_m`` beyond it (from behind) and the space above A. Returns the
+    map and A's id."""
+    WALL, F, FREE = VertexKind.OBSTACLE, VertexKind.FRONTIER, VertexKind.FREE
+    a_poly = hand_polygon([(-1, -1), (edge_x, -1), (edge_x, 0), (edge_x, 1), (-1, 1)], [WALL, WALL, F, FREE, FREE])
+    wall_x, far_x = edge_x + gap_m, edge_x + 2.0
+    b_poly = hand_polygon(
+        [(wall_x, -1), (far_x, -1), (far_x, 2), (-1, 2), (-1, 0.9), (wall_x, 0.9)], [WALL, FREE, FREE, FREE, FREE, WALL]
+    )
+    m = LocalMap()
+    a = m.add_keyframe(0.0, Pose2.identity(), a_poly)
+    m.add_keyframe(1.0, Pose2.identity(), b_poly, (a.keyframe_id, Pose2.identity()))
+    return m, a.keyframe_id
+
+
 def test_a_frontier_facing_only_a_sliver_between_a_wall_and_seen_space_closes_when_judged():
     """A's frontier vertex at (1, 0) faces +x. B, a neighbour, saw a wall at x = 1 + gap (from
     behind it) and the space above A: between A's edge and B's wall lies unseen space ``gap``
     wide. At 0.25 m it is a sliver, closed when judged (and counted); at 0.8 m it stays open.
     Nothing closes it before it is judged: no view holds the space beyond it, no wall is within
     the snap."""
-    WALL, F, FREE = VertexKind.OBSTACLE, VertexKind.FRONTIER, VertexKind.FREE
-    a_poly = hand_polygon([(-1, -1), (1, -1), (1, 0), (1, 1), (-1, 1)], [WALL, WALL, F, FREE, FREE])
     kinds = []
     for gap in (0.25, 0.8):
-        wall_x = 1.0 + gap
-        b_poly = hand_polygon(
-            [(wall_x, -1), (3, -1), (3, 2), (-1, 2), (-1, 0.9), (wall_x, 0.9)], [WALL, FREE, FREE, FREE, FREE, WALL]
-        )
-        m = LocalMap()
-        a = m.add_keyframe(0.0, Pose2.identity(), a_poly)
-        m.add_keyframe(1.0, Pose2.identity(), b_poly, (a.keyframe_id, Pose2.identity()))
+        m, a_id = sliver_map(1.0, gap)
+        a = m.keyframes[a_id]
         assert a.kinds[2] == VertexKind.FRONTIER
         vertex = np.array([2])
         assert m.unjudged_slivers(a.keyframe_id, vertex).tolist() == [2]

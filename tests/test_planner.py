@@ -727,22 +727,15 @@ def test_a_frontier_facing_only_a_sliver_is_closed_when_weighed_not_flown_to():
     vertex and has nothing to fly to. At 0.8 m it is the goal. Slivers are judged only in a step
     that finds the map as the last step left it (a new keyframe makes a step dear enough): the
     first step takes the vertex unjudged, the next one judges it."""
-    from test_local_map import hand_polygon
+    from test_local_map import sliver_map
 
-    WALL, F, FREE = VertexKind.OBSTACLE, VertexKind.FRONTIER, VertexKind.FREE
-    a_poly = hand_polygon([(-1, -1), (2, -1), (2, 0), (2, 1), (-1, 1)], [WALL, WALL, F, FREE, FREE])
     goals = []
     for gap in (0.25, 0.8):
-        wall_x = 2.0 + gap
-        b_poly = hand_polygon(
-            [(wall_x, -1), (4, -1), (4, 2), (-1, 2), (-1, 0.9), (wall_x, 0.9)], [WALL, FREE, FREE, FREE, FREE, WALL]
-        )
-        m = LocalMap()
-        a = m.add_keyframe(0.0, Pose2.identity(), a_poly)
-        m.add_keyframe(1.0, Pose2.identity(), b_poly, (a.keyframe_id, Pose2.identity()))
+        m, a_id = sliver_map(2.0, gap)
+        a = m.keyframes[a_id]
         planner = FrontierPlanner()
-        first = planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0)
+        first = planner.plan(m, a_id, Pose2(0.0, 0.0, 0.0), 0.0)
         assert first.goal == FrontierKey(0, 2) and a.kinds[2] == VertexKind.FRONTIER
-        goals.append(planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.1).goal)
+        goals.append(planner.plan(m, a_id, Pose2(0.0, 0.0, 0.0), 0.1).goal)
         assert a.kinds[2] == (VertexKind.FREE if gap < 0.4 else VertexKind.FRONTIER)
     assert goals == [None, FrontierKey(0, 2)]
