@@ -29,7 +29,7 @@ from companion.core.geometry import FloatArray
 
 @dataclass(frozen=True, slots=True)
 class SliverParams:
-    """How far beyond a frontier vertex to look, and how wide unseen space must be to count."""
+    """How far round a frontier vertex to look, and how wide unseen space must be to count."""
 
     reach_m: float = 1.0  # the window: this far from the vertex each way (along its normal and across)
     width_m: float = 0.4  # unseen space that no disk this wide fits in, or reaches through, is a sliver
