@@ -33,7 +33,7 @@ class GridParams:
     centring_cells: int = 3  # a path's corners move up to this many cells away from walls
 
 
-def _disk_offsets(radius_cells: float) -> list[tuple[int, int]]:
+def disk_offsets(radius_cells: float) -> list[tuple[int, int]]:
     r = math.floor(radius_cells)
     return [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy * dy + dx * dx <= radius_cells**2]
 
@@ -112,7 +112,7 @@ class FreeSpaceGrid:
         sliver[:, 1:-1] |= inside[:, :-2] & inside[:, 2:]
         sliver[1:-1, :] |= inside[:-2, :] & inside[2:, :]
         blocked = ~(inside | sliver)
-        grid._mark(blocked, _sample_segments(obstacle_segments, cell / 2.0))
+        grid._mark(blocked, sample_segments(obstacle_segments, cell / 2.0))
         return grid._eroded(blocked)
 
     def with_blocked_points(self, points_xy: FloatArray) -> FreeSpaceGrid:
@@ -258,7 +258,7 @@ class FreeSpaceGrid:
         """The grid for these blocked cells: free where no blocked cell is within the clearance,
         and how many cells deeper than that each free cell lies."""
         radius_cells = max(0.0, (self.clearance_m - self.cell_m / 2.0) / self.cell_m)
-        not_free = _dilate(blocked, _disk_offsets(radius_cells))
+        not_free = _dilate(blocked, disk_offsets(radius_cells))
         depth = np.zeros(blocked.shape, dtype=np.int8)
         deeper = not_free
         for _ in range(self.params.centring_cells):
@@ -385,7 +385,7 @@ class Reach:
         return out
 
 
-def _sample_segments(segments: FloatArray, spacing_m: float) -> FloatArray:
+def sample_segments(segments: FloatArray, spacing_m: float) -> FloatArray:
     """Points along each segment (M, 2, 2), no farther apart than ``spacing_m``."""
     if segments.shape[0] == 0:
         return np.zeros((0, 2))

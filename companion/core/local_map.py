@@ -425,9 +425,10 @@ class LocalMap:
         self, keyframe_id: int, indices: NDArray[np.intp], frame_id: int | None = None
     ) -> NDArray[np.bool_]:
         """Close those of these open frontier vertices of the keyframe whose unseen space is only
-        a sliver (slivers.py), judged without the views found misplaced: in ``frame_id``'s view
-        when it is built and holds the keyframe well placed (the planner's current view: no view
-        to build), else in the keyframe's own. Returns which were closed."""
+        a sliver (slivers.py), judged without the views that disagree with the judging view's
+        keyframe: in ``frame_id``'s view when it is built and holds the keyframe agreeing with it
+        (the planner's current view: no view to build), else in the keyframe's own. Returns which
+        were closed."""
         kf = self.keyframes[keyframe_id]
         view = self._judging_view(keyframe_id, frame_id, build=True)
         assert view is not None
@@ -465,8 +466,8 @@ class LocalMap:
 
     def _judging_view(self, keyframe_id: int, frame_id: int | None, build: bool) -> LocalView | None:
         """The view a keyframe's vertices are judged for slivers in: ``frame_id``'s, if built and
-        it holds the keyframe not misplaced, else the keyframe's own (built if asked, else None
-        when it is not)."""
+        it holds the keyframe and agrees with it (:meth:`_disagreeing`), else the keyframe's own
+        (built if asked, else None when it is not)."""
         if frame_id is not None and frame_id != keyframe_id:
             current = self._views.get(frame_id)
             if current is not None and keyframe_id in current.poses and not self._disagreeing(current, [keyframe_id]):
@@ -662,6 +663,7 @@ class LocalMap:
         own_walls = kf.walls
         own = kf.open_frontier_indices()
         behind = self.params.wall_behind_m
+        others = list(view.poses)[1:]  # the view's own keyframe comes first, its walls too
         if own.size:
             theirs = slice(own_walls.shape[0], None)
             near = _near_walls(
@@ -673,8 +675,7 @@ class LocalMap:
                 behind,
             )
             if near.any():
-                ids = list(view.poses)[1:]
-                owner = np.repeat(ids, [self.keyframes[k].walls.shape[0] for k in ids])
+                owner = np.repeat(others, [self.keyframes[k].walls.shape[0] for k in others])
                 lenders = owner[near.any(axis=0)].tolist()
                 bad = self._disagreeing(view, lenders)
                 if bad:
@@ -682,9 +683,8 @@ class LocalMap:
                 kf.close(own[near.any(axis=1)], VertexKind.OBSTACLE)
         if own_walls.shape[0] == 0:
             return
-        ids = [k for k in view.poses if k != kf_id]
-        poses = [view.poses[k] for k in ids]
-        kfs = [self.keyframes[k] for k in ids]
+        poses = [view.poses[k] for k in others]
+        kfs = [self.keyframes[k] for k in others]
         idx = [other.open_frontier_indices() for other in kfs]
         if not any(i.size for i in idx):
             return
@@ -693,7 +693,7 @@ class LocalMap:
         own_from = np.zeros((own_walls.shape[0], 2))  # seen from this keyframe's origin
         on: NDArray[np.bool_] = np.asarray(_near_walls(pts, shadow, own_walls, own_from, snap, behind).any(axis=1))
         if on.any():
-            vertex_owner = np.repeat(ids, [i.size for i in idx])
+            vertex_owner = np.repeat(others, [i.size for i in idx])
             bad = self._disagreeing(view, vertex_owner[on].tolist())
             if bad:
                 on &= ~np.isin(vertex_owner, list(bad))

@@ -333,7 +333,7 @@ class FrontierPlanner:
         assert goal is not None
         kf = local_map.keyframes[goal.key.keyframe_id]
         if goal.arrived_s is None:  # taken in a step that could not judge it, perhaps
-            self._judge_slivers(local_map, frame_id, goal.key.keyframe_id, np.array([goal.key.index], dtype=np.intp))
+            self._judge_slivers(local_map, goal.key.keyframe_id, np.array([goal.key.index], dtype=np.intp))
         if kf.kinds[goal.key.index] != 1 or goal.key in self.set_aside:  # closed: seen
             self.goal = None
             return None
@@ -763,12 +763,14 @@ class FrontierPlanner:
         may not overlap the current one: the vehicle has been round the block since), and not a
         sliver."""
         self._check_through_graph(local_map, key.keyframe_id)
-        self._judge_slivers(local_map, self._frame_id, key.keyframe_id, np.array([key.index], dtype=np.intp))
+        self._judge_slivers(local_map, key.keyframe_id, np.array([key.index], dtype=np.intp))
         return bool(local_map.keyframes[key.keyframe_id].kinds[key.index] == VertexKind.FRONTIER)
 
-    def _judge_slivers(self, local_map: LocalMap, frame_id: int, keyframe_id: int, indices: NDArray[np.intp]) -> None:
-        """Close those of these frontiers whose unseen space is only a sliver (slivers.py), as
-        far as the step's budget goes; the rest count as open until a later step judges them."""
+    def _judge_slivers(self, local_map: LocalMap, keyframe_id: int, indices: NDArray[np.intp]) -> None:
+        """Close those of these frontiers whose unseen space is only a sliver (slivers.py, in this
+        step's view where it can), as far as the step's budget goes; the rest count as open until
+        a later step judges them."""
+        frame_id = self._frame_id
         if self._sliver_checks_left <= 0:
             return
         todo = local_map.unjudged_slivers(keyframe_id, indices, frame_id)[: self._sliver_checks_left]
@@ -1133,7 +1135,7 @@ class FrontierPlanner:
             return False
         self._check_through_graph(local_map, keyframe_id)
         targets = np.array(self._targets(local_map, keyframe_id), dtype=np.intp)
-        self._judge_slivers(local_map, self._frame_id, keyframe_id, targets)
+        self._judge_slivers(local_map, keyframe_id, targets)
         return self._has_targets(local_map, keyframe_id)
 
     def _check_through_graph(self, local_map: LocalMap, keyframe_id: int) -> None:

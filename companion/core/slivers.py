@@ -24,6 +24,7 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
+from companion.core.free_space_grid import disk_offsets, sample_segments
 from companion.core.geometry import FloatArray
 
 
@@ -66,7 +67,7 @@ def sliver_vertices(
     size = steps.size
     wall = _wall_cells(vertices_xy, outward_xy, side, walls_xy, half, cell)
     radius = params.width_m / 2.0 / cell
-    disk = _disk_offsets(radius)
+    disk = disk_offsets(radius)
     # A window without walls whose cells just beyond the vertex hold an unseen disk: open, without
     # rasterising the rest (most frontiers: a range limit in open space).
     probe = np.array([(half + math.ceil(radius) + 1 + dy, half + dx) for dy, dx in disk])
@@ -90,12 +91,6 @@ def sliver_vertices(
     return out
 
 
-def _disk_offsets(radius_cells: float) -> list[tuple[int, int]]:
-    """The cell offsets within a disk of ``radius_cells`` (its centre included)."""
-    r = math.floor(radius_cells)
-    return [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy * dy + dx * dx <= radius_cells**2]
-
-
 def _fill(seeds: NDArray[np.bool_], within: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """(N, rows, cols): the cells of ``within`` 4-connected to a seed (seeds outside it dropped)."""
     filled = seeds & within
@@ -116,7 +111,7 @@ def _eroded(mask: NDArray[np.bool_], radius_cells: float) -> NDArray[np.bool_]:
     window counts as outside the mask)."""
     _, rows, cols = mask.shape
     core = mask.copy()
-    for dy, dx in _disk_offsets(radius_cells):
+    for dy, dx in disk_offsets(radius_cells):
         if dy == 0 and dx == 0:
             continue
         shifted = np.zeros_like(mask)
@@ -168,13 +163,7 @@ def _wall_cells(
     walls_xy = walls_xy[np.all((walls_xy.max(axis=1) >= lo) & (walls_xy.min(axis=1) <= hi), axis=1)]
     if walls_xy.shape[0] == 0:
         return out
-    a, b = walls_xy[:, 0, :], walls_xy[:, 1, :]
-    count = np.maximum(1, np.ceil(np.hypot(*(b - a).T) / (cell / 2.0)).astype(np.intp))
-    seg = np.repeat(np.arange(walls_xy.shape[0]), count + 1)
-    first = np.cumsum(count + 1) - (count + 1)
-    t = (np.arange(seg.size) - first[seg]) / count[seg]
-    samples = a[seg] + t[:, None] * (b[seg] - a[seg])
-    d = samples[None, :, :] - vertices_xy[:, None, :]  # (N, P, 2)
+    d = sample_segments(walls_xy, cell / 2.0)[None, :, :] - vertices_xy[:, None, :]  # (N, P, 2)
     u = np.rint(np.einsum("npk,nk->np", d, outward_xy) / cell).astype(np.intp) + half
     w = np.rint(np.einsum("npk,nk->np", d, side) / cell).astype(np.intp) + half
     ok = (u >= 0) & (u < size) & (w >= 0) & (w < size)
