@@ -2,6 +2,10 @@
 grid baseline (perfect poses). Writes JSON results and prints a summary table.
 
     .venv/bin/python benchmarks/run.py --out out/bench/results.json [--seeds 5] [--maps room office]
+        [--generated 10]
+
+``--generated N`` adds N random buildings (sitl/map_generator.py, map seeds 1..N, written next to
+the results as ``maps/genK.geojson``): maps nobody tuned the planner for.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from sitl.map_generator import generate_map
 from sitl.runner import run_exploration
 from sitl.world import load_world
 
@@ -28,11 +33,19 @@ def main() -> int:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--maps", nargs="*", default=None, help="map names in config/maps (default: all)")
     parser.add_argument("--max-time", type=float, default=3600.0)
+    parser.add_argument("--generated", type=int, default=0, help="also this many generated maps (map seeds 1..N)")
     args = parser.parse_args()
     console = Console()
     paths = sorted(Path("config/maps").glob("*.geojson"))
     if args.maps:
         paths = [p for p in paths if p.stem in args.maps]
+    if args.generated > 0:
+        maps_dir = args.out.parent / "maps"
+        maps_dir.mkdir(parents=True, exist_ok=True)
+        for k in range(1, args.generated + 1):
+            path = maps_dir / f"gen{k}.geojson"
+            path.write_text(json.dumps(generate_map(k), indent=1) + "\n")
+            paths.append(path)
     runs = []
     for path in paths:
         world = load_world(path)

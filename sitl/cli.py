@@ -56,7 +56,26 @@ def _parser() -> argparse.ArgumentParser:
     sensor.add_argument("--zenoh-prefix", default="companion")
     sensor.add_argument("--vehicle-name", default="sitl")
     sensor.add_argument("--seed", type=int, default=1)
+    gen = sub.add_parser("mapgen", help="write a random building map (rooms, doors, furniture) for exploration tests")
+    gen.add_argument("--seed", type=int, default=1, help="the same seed gives the same map")
+    gen.add_argument("--width", type=float, default=24.0, help="building width in metres (default 24)")
+    gen.add_argument("--height", type=float, default=16.0, help="building height in metres (default 16)")
+    gen.add_argument("--out", required=True, type=Path, help="GeoJSON file to write")
     return parser
+
+
+def _mapgen(args: argparse.Namespace) -> int:
+    from sitl.map_generator import MapGenParams, generate_map
+
+    try:
+        data = generate_map(args.seed, MapGenParams(width_m=args.width, height_m=args.height))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(data, indent=1) + "\n")
+    except (SitlError, OSError) as err:
+        print(f"sitl: {err}", file=sys.stderr)
+        return 2
+    print(f"sitl: wrote {args.out}: {data['description']}")
+    return 0
 
 
 def _sensor(args: argparse.Namespace, world: World) -> int:
@@ -95,6 +114,8 @@ def _sensor(args: argparse.Namespace, world: World) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+    if args.command == "mapgen":
+        return _mapgen(args)
     if args.command == "run" and args.speedup <= 0:
         print("sitl: --speedup must be positive", file=sys.stderr)
         return 2
