@@ -26,7 +26,7 @@ lint: $(STAMP)
 	$(BIN)/mypy --strict companion/core
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/run.py --out out/bench/results.json
+	$(BIN)/python benchmarks/run.py --out out/bench/results.json --generated 10
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache
