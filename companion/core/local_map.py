@@ -443,23 +443,22 @@ class LocalMap:
         idx = indices[ask]
         pose = view.poses[keyframe_id]
         vertices = pose.apply(kf.polygon.vertices_xy[idx])
-        # Only views that agree with the view's keyframe, however few hops away, judge: a view
-        # one bad loop closure misplaced may cover unseen space as seen (the views round the
-        # vertices are asked; those far away have been by _misplaced).
-        keep = ~self._misplaced(view)
-        reach = self.params.slivers.reach_m * math.sqrt(2.0)
+        # Only the views round the vertices judge (no other reaches a window's cells, walls
+        # rounded into its edge cells included), and only those that agree with the view's
+        # keyframe, however few hops away: a view one bad loop closure misplaced may cover
+        # unseen space as seen.
+        p = self.params.slivers
+        reach = (p.reach_m + p.cell_m) * math.sqrt(2.0)
         lo, hi = vertices.min(axis=0) - reach, vertices.max(axis=0) + reach
         b = shapely.bounds(view.shapes)
         ids = list(view.poses)
-        near = np.flatnonzero(keep & np.all((b[:, 2:] >= lo) & (b[:, :2] <= hi), axis=1))
-        bad = self._disagreeing(view, [ids[i] for i in near])
+        keep = np.all((b[:, 2:] >= lo) & (b[:, :2] <= hi), axis=1)
+        bad = self._disagreeing(view, [ids[i] for i in np.flatnonzero(keep)])
         if bad:
             keep &= ~np.isin(np.array(ids), list(bad))
         per_view = [self.keyframes[k].walls.shape[0] for k in ids]
         walls = view.walls_xy[np.repeat(keep, per_view)]
-        hit[ask] = sliver_vertices(
-            vertices, pose.rotate(kf.polygon.outward_xy[idx]), view.shapes[keep], walls, self.params.slivers
-        )
+        hit[ask] = sliver_vertices(vertices, pose.rotate(kf.polygon.outward_xy[idx]), view.shapes[keep], walls, p)
         kf.close(indices[hit])
         self.slivers_closed += int(np.count_nonzero(hit))
         return hit
