@@ -16,12 +16,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from companion.core.explorer import Explorer, ExplorerParams
-from companion.core.fov_polygon import PolygonParams, returns_xy
-from companion.core.geometry import Pose2
+from companion.core.explorer import Explorer, ExplorerParams, RecentReturns
+from companion.core.fov_polygon import PolygonParams, in_view, returns_xy
+from companion.core.geometry import FloatArray, Pose2
 from companion.core.messages import Setpoint
 from companion.core.planner import Mode, PlannerParams
-from companion.core.setpoint_lead import LeadParams, limit_lead
+from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
 from sitl.coverage import CoverageGrid
 from sitl.drift import DriftParams
 from sitl.grid_explorer import GridExplorer
@@ -60,18 +60,26 @@ class PolygonPolicy:
 
 class GridPolicy:
     """The perfect-pose grid baseline (it reads the true pose, as in the thesis). Its setpoints
-    go through the same lead limit as the product's (the newest scan's returns, true frame):
-    the same vehicle, with the same speed limit near what it sees."""
+    go through the same lead limit as the product's (the newest scan's returns and the recent
+    ones remembered, true frame): the same vehicle, with the same speed limit near what it sees."""
 
     def __init__(self, world: World) -> None:
         self.explorer = GridExplorer(world.bounds)
         self.step_ms: list[float] = []
-        self.lead = LeadParams()
+        # Its poses are perfect, so remembered returns have not drifted: no margin for it. (With
+        # the product's, paths it plans 0.3 m off a wall through a door were held short, and it
+        # set their frontiers aside: 3 of 110 runs ended at coverage 0.94-0.96.)
+        self.lead = LeadParams(memory_margin_m=0.0)
+        explorer = ExplorerParams()
+        self._recent = RecentReturns(explorer.obstacle_memory_s, explorer.obstacle_memory_m)
+        self._travelled_m = 0.0
         self._last: tuple[float, Pose2] | None = None
 
     def step(self, frame: SensorFrame) -> Setpoint | None:
         t0 = time.perf_counter()
         pose = frame.true_pose
+        if self._last is not None:
+            self._travelled_m += math.hypot(pose.x_m - self._last[1].x_m, pose.y_m - self._last[1].y_m)
         sp = self.explorer.step(pose, frame.scan)
         if sp is not None:
             velocity = (0.0, 0.0)
@@ -79,10 +87,26 @@ class GridPolicy:
                 dt = frame.stamp_s - self._last[0]
                 velocity = ((pose.x_m - self._last[1].x_m) / dt, (pose.y_m - self._last[1].y_m) / dt)
             returns = pose.apply(returns_xy(frame.scan, PolygonParams().frontier_range_tolerance_m))
-            sp = limit_lead(sp, pose, velocity, returns, PlannerParams().body_radius_m, self.lead)
+            # It remembers recent returns as the product does (a jamb turned out of view still
+            # holds the setpoint back), and faces one that alone holds it, to see it again.
+            remembered = self._remembered(frame, returns)
+            radius = PlannerParams().body_radius_m
+            sp, _ = limit_lead_facing_memory(sp, pose, velocity, returns, radius, self.lead, remembered)
         self._last = (frame.stamp_s, pose)
         self.step_ms.append((time.perf_counter() - t0) * 1e3)
         return sp
+
+    def _remembered(self, frame: SensorFrame, returns: FloatArray) -> FloatArray:
+        """The earlier scans' returns, less those the newest scan has its own say about (the
+        product's rule, :meth:`Explorer._recent_obstacles`); then the newest scan's are kept."""
+        pts = self._recent.points_xy()
+        if pts.shape[0]:
+            covered = in_view(frame.scan, frame.true_pose, pts)
+            if covered.any():
+                self._recent.keep(~covered)
+                pts = pts[~covered]
+        self._recent.add(frame.stamp_s, self._travelled_m, returns)
+        return pts
 
     def summary(self) -> dict[str, Any]:
         return {

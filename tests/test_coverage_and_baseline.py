@@ -4,11 +4,12 @@ import numpy as np
 
 from companion.core.fov_polygon import returns_xy
 from companion.core.geometry import Pose2, first_contact
+from companion.core.messages import DepthScan, Odometry, Setpoint
 from companion.core.planner import PlannerParams
 from sitl.coverage import CoverageGrid
 from sitl.grid_explorer import FREE, OCCUPIED, UNKNOWN, GridExplorer
 from sitl.runner import GridPolicy, run_exploration
-from sitl.simulation import SimParams, Simulation
+from sitl.simulation import SensorFrame, SimParams, Simulation
 from sitl.world import load_world
 from tests.conftest import square, write_map
 
@@ -113,3 +114,25 @@ def test_grid_baseline_setpoints_go_through_the_same_lead_limit_as_the_products(
             touch = PlannerParams().body_radius_m + policy.lead.contact_margin_m
             assert first_contact(returns, direction, min(touch, 0.95 * float(np.min(np.hypot(*returns.T)))))[0] >= lead
         frame = sim.advance(Pose2(sp.x_m, sp.y_m, sp.yaw_rad))
+
+
+def test_grid_baseline_lead_remembers_a_wall_turned_out_of_view(small_room):
+    """The yardstick's lead remembers recent returns, as the product's does: a wall seen ahead,
+    then turned away from, still holds back a setpoint through it (gen2 seed 2 swung onto a
+    jamb's end it no longer saw)."""
+    policy = GridPolicy(load_world(small_room))
+    bearings = np.linspace(-0.7, 0.7, 57)
+    seen = DepthScan(0.0, bearings, 0.8 / np.cos(bearings), 5.0)  # a wall 0.8 m ahead, across
+    nothing = DepthScan(0.1, bearings, np.full(bearings.size, np.inf), 5.0)
+    start = Pose2(2.0, 3.0, 0.0)
+    through = Setpoint(4.0, 3.0, math.pi)  # on past the wall, looking back
+    policy.explorer.step = lambda pose, scan: through  # type: ignore[method-assign]
+    policy.step(SensorFrame(0.0, Odometry(0.0, start), seen, None, start))
+    turned = Pose2(2.0, 3.0, math.pi)
+    sp = policy.step(SensorFrame(0.1, Odometry(0.1, turned), nothing, None, turned))
+    assert sp is not None
+    assert sp.x_m <= 2.8 - PlannerParams().body_radius_m  # short of the remembered wall
+    # and where the newest scan has its own say (the wall gone), the memory gives way
+    looked = Pose2(2.0, 3.0, 0.0)
+    sp = policy.step(SensorFrame(0.2, Odometry(0.2, looked), nothing, None, looked))
+    assert sp is not None and sp.x_m > 2.8
