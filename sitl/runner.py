@@ -17,8 +17,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.core.explorer import Explorer, ExplorerParams, RecentReturns
-from companion.core.fov_polygon import PolygonParams, in_view, returns_xy
-from companion.core.geometry import FloatArray, Pose2
+from companion.core.fov_polygon import PolygonParams, returns_xy
+from companion.core.geometry import Pose2
 from companion.core.messages import Setpoint
 from companion.core.planner import Mode, PlannerParams
 from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
@@ -89,24 +89,15 @@ class GridPolicy:
             returns = pose.apply(returns_xy(frame.scan, PolygonParams().frontier_range_tolerance_m))
             # It remembers recent returns as the product does (a jamb turned out of view still
             # holds the setpoint back), and faces one that alone holds it, to see it again.
-            remembered = self._remembered(frame, returns)
+            self._recent.add(frame.stamp_s, self._travelled_m, returns)
+            self._recent.forget_seen(frame.scan, pose)
+            pts = self._recent.points_xy()
+            remembered = pts[: pts.shape[0] - self._recent.newest_count()]
             radius = PlannerParams().body_radius_m
             sp, _ = limit_lead_facing_memory(sp, pose, velocity, returns, radius, self.lead, remembered)
         self._last = (frame.stamp_s, pose)
         self.step_ms.append((time.perf_counter() - t0) * 1e3)
         return sp
-
-    def _remembered(self, frame: SensorFrame, returns: FloatArray) -> FloatArray:
-        """The earlier scans' returns, less those the newest scan has its own say about (the
-        product's rule, :meth:`Explorer._recent_obstacles`); then the newest scan's are kept."""
-        pts = self._recent.points_xy()
-        if pts.shape[0]:
-            covered = in_view(frame.scan, frame.true_pose, pts)
-            if covered.any():
-                self._recent.keep(~covered)
-                pts = pts[~covered]
-        self._recent.add(frame.stamp_s, self._travelled_m, returns)
-        return pts
 
     def summary(self) -> dict[str, Any]:
         return {

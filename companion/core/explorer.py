@@ -169,6 +169,16 @@ class RecentReturns:
         """Re-express the points after an estimator reset (``new = correction ∘ old``)."""
         self._scans = deque((t, d, correction.apply(pts)) for t, d, pts in self._scans)
 
+    def forget_seen(self, scan: DepthScan, sensor: Pose2) -> None:
+        """Forget the earlier scans' points that the newest one (``scan``, taken at ``sensor``)
+        has its own say about (:func:`in_view`): drift moves old returns a little, and where the
+        sensor looks now it is the authority. What stays is out of its view, or its own."""
+        pts = self.points_xy()
+        older = pts.shape[0] - self.newest_count()
+        covered = in_view(scan, sensor, pts[:older])
+        if covered.any():
+            self.keep(np.concatenate((~covered, np.ones(pts.shape[0] - older, dtype=bool))))
+
     def keep(self, mask: NDArray[np.bool_]) -> None:
         """Forget the points whose entry in ``mask`` (one per point of :meth:`points_xy`) is False;
         a scan left with none is dropped, the newest kept (see :meth:`newest_count`)."""
@@ -512,16 +522,9 @@ class Explorer:
 
     def _recent_obstacles(self, pose_at_scan: Pose2, newest: DepthScan) -> FloatArray:
         """The recent returns (odometry frame), less the earlier scans' inside the newest one's
-        view (:func:`in_view`, they are forgotten): drift moves old returns a little, and where
-        the sensor looks now it is the authority. What stays is out of view, or the newest scan."""
-        pts = self._recent.points_xy()
-        older = pts.shape[0] - self._recent.newest_count()
-        covered = in_view(newest, pose_at_scan, pts[:older])
-        if covered.any():
-            keep = np.concatenate((~covered, np.ones(pts.shape[0] - older, dtype=bool)))
-            self._recent.keep(keep)
-            pts = pts[keep]
-        return pts
+        view (:meth:`RecentReturns.forget_seen`)."""
+        self._recent.forget_seen(newest, pose_at_scan)
+        return self._recent.points_xy()
 
     def _keyframe_near(self, stamp_s: float, pose: Pose2, gap_s: float) -> int | None:
         """The keyframe nearest in time to ``stamp_s`` (within ``gap_s``) whose view holds
