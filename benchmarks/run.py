@@ -22,7 +22,7 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sitl.map_generator import generate_map
+from sitl.map_generator import write_generated_map
 from sitl.runner import run_exploration
 from sitl.world import load_world
 
@@ -40,11 +40,9 @@ def main() -> int:
     if args.maps:
         paths = [p for p in paths if p.stem in args.maps]
     if args.generated > 0:
-        maps_dir = args.out.parent / "maps"
-        maps_dir.mkdir(parents=True, exist_ok=True)
         for k in range(1, args.generated + 1):
-            path = maps_dir / f"gen{k}.geojson"
-            path.write_text(json.dumps(generate_map(k), indent=1) + "\n")
+            path = args.out.parent / "maps" / f"gen{k}.geojson"
+            write_generated_map(path, k)
             paths.append(path)
     runs = []
     for path in paths:

@@ -65,12 +65,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _mapgen(args: argparse.Namespace) -> int:
-    from sitl.map_generator import MapGenParams, generate_map
+    from sitl.map_generator import MapGenParams, write_generated_map
 
     try:
-        data = generate_map(args.seed, MapGenParams(width_m=args.width, height_m=args.height))
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(data, indent=1) + "\n")
+        data = write_generated_map(args.out, args.seed, MapGenParams(width_m=args.width, height_m=args.height))
     except (SitlError, OSError) as err:
         print(f"sitl: {err}", file=sys.stderr)
         return 2

@@ -11,8 +11,10 @@ for a seed; written in the format of ``config/maps/README.md``.
 from __future__ import annotations
 
 import itertools
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -70,6 +72,14 @@ def generate_map(seed: int, params: MapGenParams | None = None) -> dict[str, Any
         if start is not None and _all_reachable(free, start, p.berth_m):
             return _geojson(seed, p, boundary, obstacles, start, float(rng.uniform(-180.0, 180.0)), len(rooms))
     raise MapError(f"map generator: no valid map for seed {seed} in {p.attempts} attempts")
+
+
+def write_generated_map(path: Path, seed: int, params: MapGenParams | None = None) -> dict[str, Any]:
+    """:func:`generate_map`, written to ``path`` (its folder made if missing); returns the map."""
+    data = generate_map(seed, params)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1) + "\n")
+    return data
 
 
 def _divide(
