@@ -1,13 +1,11 @@
 """Random building maps (sitl/map_generator.py): valid, reachable, deterministic, and explored."""
 
-import json
-
 import pytest
 import shapely
 
 from sitl.cli import main as sitl_main
 from sitl.errors import MapError
-from sitl.map_generator import MapGenParams, generate_map
+from sitl.map_generator import MapGenParams, generate_map, write_generated_map
 from sitl.runner import run_exploration
 from sitl.world import load_world
 
@@ -16,7 +14,7 @@ BERTH_M = MapGenParams().berth_m
 
 def _write(tmp_path, seed, params=None):
     path = tmp_path / f"gen{seed}.geojson"
-    path.write_text(json.dumps(generate_map(seed, params)))
+    write_generated_map(path, seed, params)
     return path
 
 
