@@ -89,10 +89,9 @@ class GridPolicy:
             returns = pose.apply(returns_xy(frame.scan, PolygonParams().frontier_range_tolerance_m))
             # It remembers recent returns as the product does (a jamb turned out of view still
             # holds the setpoint back), and faces one that alone holds it, to see it again.
-            self._recent.add(frame.stamp_s, self._travelled_m, returns)
             self._recent.forget_seen(frame.scan, pose)
-            pts = self._recent.points_xy()
-            remembered = pts[: pts.shape[0] - self._recent.newest_count()]
+            remembered = self._recent.points_xy()
+            self._recent.add(frame.stamp_s, self._travelled_m, returns)
             radius = PlannerParams().body_radius_m
             sp, _ = limit_lead_facing_memory(sp, pose, velocity, returns, radius, self.lead, remembered)
         self._last = (frame.stamp_s, pose)

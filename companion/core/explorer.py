@@ -170,11 +170,13 @@ class RecentReturns:
         self._scans = deque((t, d, correction.apply(pts)) for t, d, pts in self._scans)
 
     def forget_seen(self, scan: DepthScan, sensor: Pose2) -> None:
-        """Forget the earlier scans' points that the newest one (``scan``, taken at ``sensor``)
-        has its own say about (:func:`in_view`): drift moves old returns a little, and where the
-        sensor looks now it is the authority. What stays is out of its view, or its own."""
+        """Forget the earlier scans' points that ``scan`` (the newest, taken at ``sensor``) has
+        its own say about (:func:`in_view`): drift moves old returns a little, and where the
+        sensor looks now it is the authority. What stays is out of its view, or its own points
+        (when it was added already: it is the newest kept, at its stamp)."""
         pts = self.points_xy()
-        older = pts.shape[0] - self.newest_count()
+        added = bool(self._scans) and self._scans[-1][0] == scan.stamp_s
+        older = pts.shape[0] - (self.newest_count() if added else 0)
         covered = in_view(scan, sensor, pts[:older])
         if covered.any():
             self.keep(np.concatenate((~covered, np.ones(pts.shape[0] - older, dtype=bool))))
