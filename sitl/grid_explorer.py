@@ -136,6 +136,20 @@ class GridExplorer:
             count += _shift(unknown, di, dj)
         return (self.grid == FREE) & (count >= self.params.min_unknown_neighbours) & ~self._ignored
 
+    def unreachable_frontier_cells(self) -> int:
+        """Frontier cells in runs long enough to plan for at the tight clearance (a room behind a
+        door, not a sliver behind a pillar): once it is done, those it could not reach. A baseline
+        that saw into a room through a door it could not pass reported `complete` at coverage
+        0.94-0.96 (hotel seed 9, a generated map); with this count it reports what was left."""
+        return int(np.count_nonzero(self._long_runs(self.frontier_cells())))
+
+    def _long_runs(self, frontier: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """The frontier cells with at least ``tight_min_frontier_cells`` of them within a 1 m
+        square round each."""
+        half = int(round(0.5 / self.params.resolution_m))
+        out: NDArray[np.bool_] = frontier & (_box_sum(frontier, half) >= self.params.tight_min_frontier_cells)
+        return out
+
     def _passable(self, pose: Pose2, clearance_m: float) -> NDArray[np.bool_]:
         """Free cells clear of known walls by the clearance and of unknown space by the body
         radius (an unseen door jamb must not be cut). When braking left the vehicle inside the
@@ -173,9 +187,7 @@ class GridExplorer:
         tight = self.params.tight_clearance_m
         if tight >= self.params.clearance_m:
             return False
-        half = int(round(0.5 / self.params.resolution_m))
-        frontier &= _box_sum(frontier, half) >= self.params.tight_min_frontier_cells
-        if self._plan_at(pose, frontier, tight):
+        if self._plan_at(pose, self._long_runs(frontier), tight):
             self._clearance_m = tight
             return True
         return False

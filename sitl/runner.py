@@ -105,7 +105,7 @@ class GridPolicy:
             "loop_closures_matched": 0,
             "odometry_edges_matched": 0,
             "frontiers_left": int(self.explorer.frontier_cells().sum()),
-            "frontiers_set_aside": 0,
+            "frontiers_set_aside": self.explorer.unreachable_frontier_cells() if self.explorer.done else 0,
             "frontiers_closed_on_sight": 0,
             "frontiers_closed_on_surface": 0,
             "frontiers_closed_as_slivers": 0,

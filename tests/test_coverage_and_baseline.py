@@ -85,7 +85,9 @@ def test_grid_baseline_leaves_a_room_by_a_door_too_narrow_for_its_clearance():
     assert ex._plan(here)
     assert ex._path[-1][0] > 4.2  # through the door
     assert ex._clearance_m == ex.params.tight_clearance_m
-    assert not shut_in_room(GridExplorerParams(tight_clearance_m=0.4))._plan(here)
+    shut_in = shut_in_room(GridExplorerParams(tight_clearance_m=0.4))
+    assert not shut_in._plan(here)
+    assert shut_in.unreachable_frontier_cells() >= shut_in.params.tight_min_frontier_cells  # reported as left
     # Behind the door only a sliver (0.4 m of unknown cells, then wall): not worth the tight
     # clearance (chasing such slivers behind pillars cost office 16 % once coverage was full).
     sliver = shut_in_room(GridExplorerParams())
@@ -93,6 +95,19 @@ def test_grid_baseline_leaves_a_room_by_a_door_too_narrow_for_its_clearance():
     sliver.grid[sliver._cell(0.0, 1.8)[0] : sliver._cell(0.0, 2.2)[0], sliver._cell(5.0, 0.0)[1]] = UNKNOWN
     assert sliver.frontier_cells().any()
     assert not sliver._plan(here)
+    assert sliver.unreachable_frontier_cells() == 0  # a sliver is not a room left unexplored
+
+
+def test_grid_baseline_that_cannot_pass_a_door_it_sees_through_reports_frontiers_left(tmp_path):
+    """Through a 0.5 m gap the sensor sees into the next room, but the body cannot pass: the
+    baseline ends with that room's frontiers left and says so (it had reported `complete` at
+    coverage 0.94-0.96 on hotel seed 9 and a generated map)."""
+    wall = [square(4.0, 0.0, 4.1, 1.75), square(4.0, 2.25, 4.1, 4.0)]
+    path = write_map(tmp_path / "gap.geojson", square(0, 0, 8, 4), wall, (2.0, 2.0), 0.0)
+    report = run_exploration(load_world(path), "grid", seed=1, max_time_s=300.0).report
+    assert report["termination"] == "unreachable_frontiers_left"
+    assert report["frontiers_set_aside"] > 0
+    assert report["coverage"] < 0.9
 
 
 def test_grid_baseline_setpoints_go_through_the_same_lead_limit_as_the_products(small_room):
