@@ -2,6 +2,12 @@
 
 Noise grows with the square root of distance travelled, scaled so one keyframe-sized step of 1 m
 gets the thesis's sigma (0.1 m per axis, 0.015 rad); ``scale`` multiplies both (0 = perfect).
+
+The estimator reports its velocity too, as an autopilot's EKF does (ODOMETRY, LOCAL_POSITION_NED):
+the true velocity turned into the estimate's frame, with white noise of ``velocity_sigma_mps`` per
+axis (times ``scale``). It is not the drifting pose's derivative: that random walk, drawn on every
+physics increment, makes the heading of motion over 0.2 s swing by tens of degrees, where an EKF
+fusing an IMU holds its velocity to a few centimetres per second.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ class DriftParams:
     sigma_yaw_rad: float = 0.015  # per metre-sized step
     step_m: float = 1.0
     scale: float = 1.0
+    velocity_sigma_mps: float = 0.05  # per axis, white, on the reported velocity
 
 
 class OdometryDrift:

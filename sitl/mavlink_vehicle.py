@@ -75,7 +75,7 @@ class MavlinkVehicle:
         params = SimParams(
             base.sensor,
             base.vehicle,
-            DriftParams(d.sigma_xy_m, d.sigma_yaw_rad, d.step_m, options.noise_scale),
+            DriftParams(d.sigma_xy_m, d.sigma_yaw_rad, d.step_m, options.noise_scale, d.velocity_sigma_mps),
             base.slam,
             base.physics_rate_hz,
         )
@@ -339,8 +339,8 @@ class MavlinkVehicle:
         ap = self.autopilot
         local = self._local(f.odometry.pose)
         north, east, yaw_ned = core_to_ned(local.x_m, local.y_m, local.yaw_rad)
-        v = self.sim.vehicle.velocity  # true world velocity; the estimate's is close enough here
-        vn, ve = float(v[1]), float(v[0])
+        v_east, v_north = f.odometry.velocity_xy or (0.0, 0.0)  # the estimator's (see sitl.drift)
+        vn, ve = v_north, v_east
         down = -ap.height_m
         usec = int(round(self.sim.time_s * 1e6))
         if msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:

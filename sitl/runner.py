@@ -157,7 +157,7 @@ def run_exploration(
     params = SimParams(
         base.sensor,
         base.vehicle,
-        DriftParams(d.sigma_xy_m, d.sigma_yaw_rad, d.step_m, scale),
+        DriftParams(d.sigma_xy_m, d.sigma_yaw_rad, d.step_m, scale, d.velocity_sigma_mps),
         base.slam,
         base.physics_rate_hz,
     )

@@ -81,15 +81,17 @@ class SensorNode:
                 if not all(math.isfinite(v) for v in (msg.x, msg.y)):
                     continue
                 local = ned_to_core(float(msg.x), float(msg.y), self._yaw_ned)
+                velocity = (float(msg.vy), float(msg.vx))  # the autopilot's, in core axes (east, north)
                 # Sensor rate in the autopilot's time, so a sped-up SITL gets scans as it should.
                 if stamp - last_scan_stamp < period - 1e-3:
                     continue
                 last_scan_stamp = stamp
-                self._publish(stamp, local)
+                self._publish(stamp, local, velocity)
 
-    def _publish(self, stamp_s: float, local: Pose2) -> None:
+    def _publish(self, stamp_s: float, local: Pose2, velocity_xy: tuple[float, float] | None = None) -> None:
         pose = self._map_pose(local)
-        self._pubs["odometry"].put(encode_odometry(Odometry(stamp_s, local)))
+        finite = velocity_xy is not None and all(math.isfinite(v) for v in velocity_xy)
+        self._pubs["odometry"].put(encode_odometry(Odometry(stamp_s, local, 0, velocity_xy if finite else None)))
         self._pubs["scan"].put(encode_scan(self.sensor.scan(pose, stamp_s)))
         closure = self.slam.observe(stamp_s, pose)
         if closure is not None:

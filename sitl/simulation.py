@@ -49,6 +49,8 @@ class Simulation:
         self.vehicle = Vehicle(p.vehicle, world.start, OdometryDrift(p.drift, world.start, rng))
         self.sensor = DepthSensor(world.walls, p.sensor, rng)
         self.slam = SimulatedSlam(p.slam, world.walls)
+        # The reported velocity's noise has a stream of its own: the drift is drawn as before.
+        self._velocity_rng = np.random.default_rng([seed, 7])
         self.time_s = 0.0
         self.collisions = 0
         self.path_length_m = 0.0
@@ -64,7 +66,19 @@ class Simulation:
         v = self.vehicle
         scan = self.sensor.scan(v.true_pose, self.time_s)
         closure = self.slam.observe(self.time_s, v.true_pose)
-        return SensorFrame(self.time_s, Odometry(self.time_s, v.estimate), scan, closure, v.true_pose)
+        odometry = Odometry(self.time_s, v.estimate, 0, self._reported_velocity())
+        return SensorFrame(self.time_s, odometry, scan, closure, v.true_pose)
+
+    def _reported_velocity(self) -> tuple[float, float]:
+        """The estimator's velocity: the true one in the estimate's frame, with its noise."""
+        v = self.vehicle
+        turn = v.estimate.yaw_rad - v.true_pose.yaw_rad
+        c, s = math.cos(turn), math.sin(turn)
+        vx, vy = float(v.velocity[0]), float(v.velocity[1])
+        d = self.params.drift
+        sigma = d.velocity_sigma_mps * d.scale
+        nx, ny = self._velocity_rng.normal(0.0, sigma, 2) if sigma > 0.0 else (0.0, 0.0)
+        return (c * vx - s * vy + float(nx), s * vx + c * vy + float(ny))
 
     def advance(self, target: Pose2 | None) -> SensorFrame:
         """Fly towards ``target`` (estimate frame) until the next sensor tick, then sense."""

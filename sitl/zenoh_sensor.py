@@ -25,7 +25,8 @@ class ZenohSensorPublisher:
         self.published = 0
 
     def publish(self, frame: SensorFrame, local_pose: Pose2) -> None:
-        self._odom.put(encode_odometry(Odometry(frame.stamp_s, local_pose, frame.odometry.reset_counter)))
+        odom = frame.odometry
+        self._odom.put(encode_odometry(Odometry(frame.stamp_s, local_pose, odom.reset_counter, odom.velocity_xy)))
         self._scan.put(encode_scan(frame.scan))
         if frame.loop_closure is not None:
             self._closure.put(encode_loop_closure(frame.loop_closure))

@@ -174,6 +174,22 @@ def test_setpoints_never_lead_the_vehicle_by_more_than_the_configured_distance()
     assert max(leads) == pytest.approx(1.0, abs=1e-6)  # it did want to go farther, and was held
 
 
+def test_the_explorer_takes_the_estimators_velocity_when_the_odometry_carries_one():
+    """An autopilot's velocity (ODOMETRY, LOCAL_POSITION_NED) is steadier than the drifting pose
+    differenced: taken as it is, turned into the keyframe's frame; unknown (None, NaN), the
+    pose is differenced."""
+    facing_north = Pose2(2.0, 1.0, math.pi / 2.0)
+    ex = explorer()
+    ex.step(Odometry(0.0, facing_north), DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0))
+    for i in range(1, 4):  # hovering, by its pose
+        ex.step(Odometry(0.1 * i, facing_north, 0, (0.0, 0.8)))
+    assert ex.anchor == facing_north
+    moving = Odometry(0.4, facing_north, 0, (0.0, 0.8))  # north in the odometry frame: ahead
+    assert ex._velocity_in_frame(moving) == pytest.approx((0.8, 0.0))
+    for unknown in (None, (math.nan, 0.8)):
+        assert ex._velocity_in_frame(Odometry(0.4, facing_north, 0, unknown)) == pytest.approx((0.0, 0.0))
+
+
 def test_a_frontier_the_newest_scan_sees_as_wall_is_closed_without_flying_to_it():
     """A wall exactly at the sensor's range: the first view's arc touches it but cannot tell, and
     the goal is the arc's middle (straight ahead). From 0.9 m closer (no new keyframe yet) the

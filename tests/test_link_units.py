@@ -40,6 +40,18 @@ def test_ned_and_core_frames_are_inverse_and_right_handed() -> None:
         assert math.isclose(yaw_from_quaternion(*quaternion_from_yaw(float(yaw))), float(yaw), abs_tol=1e-12)
 
 
+def test_odometry_velocity_is_read_in_the_frame_its_child_frame_id_names() -> None:
+    """ODOMETRY's velocity is in ``child_frame_id``'s frame (REP 147): PX4 sends the body's."""
+    from companion.links.mavlink_link import mavlink, odometry_velocity_ned
+
+    facing_east = math.pi / 2.0  # NED heading: clockwise from north
+    north, east = odometry_velocity_ned(mavlink.MAV_FRAME_BODY_FRD, 1.0, 0.5, facing_east) or (0.0, 0.0)
+    assert north == pytest.approx(-0.5) and east == pytest.approx(1.0)  # forward is east, right is south
+    assert odometry_velocity_ned(mavlink.MAV_FRAME_LOCAL_NED, 1.0, 0.5, facing_east) == (1.0, 0.5)
+    assert odometry_velocity_ned(mavlink.MAV_FRAME_BODY_FRD, math.nan, 0.0, 0.0) is None  # unknown
+    assert odometry_velocity_ned(mavlink.MAV_FRAME_GLOBAL, 1.0, 0.0, 0.0) is None
+
+
 def test_obstacle_distance_round_trip_keeps_bearings_and_ranges() -> None:
     bearings = np.linspace(-math.pi / 4, math.pi / 4, 64)
     ranges = 1.0 + np.arange(64) * 0.05

@@ -1,4 +1,5 @@
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -84,3 +85,32 @@ def test_no_loop_closure_through_a_wall():
         + [(float(x), 3.0) for x in range(6, -1, -1)]
     )
     assert _travel(slam, path) == []
+
+
+def test_the_simulated_estimator_reports_its_velocity_in_its_own_drifting_frame():
+    """The reported velocity is the true one turned into the estimate's frame, plus its small
+    noise; not the drifting pose's derivative, and none of it without drift."""
+    from sitl.simulation import SimParams, Simulation
+    from sitl.world import load_world
+
+    world = load_world(Path(__file__).resolve().parents[1] / "config" / "maps" / "hall.geojson")
+    s = world.start
+    ahead = Pose2(s.x_m + math.cos(s.yaw_rad), s.y_m + math.sin(s.yaw_rad), s.yaw_rad + 0.5)  # 1 m on, turning
+    assert world.clearance_at(ahead.x_m, ahead.y_m) > 0.5
+    errors, turned = [], []
+    for scale in (0.0, 1.0):
+        p = SimParams()
+        sim = Simulation(world, SimParams(p.sensor, p.vehicle, DriftParams(scale=scale), p.slam), seed=3)
+        frame = sim.frame()
+        for _ in range(12):
+            frame = sim.advance(ahead)
+        assert not sim.crashed and float(np.hypot(*sim.vehicle.velocity)) > 0.3
+        est, true = frame.odometry.pose, frame.true_pose
+        turn = est.yaw_rad - true.yaw_rad
+        vx, vy = (float(v) for v in sim.vehicle.velocity)
+        expected = (math.cos(turn) * vx - math.sin(turn) * vy, math.sin(turn) * vx + math.cos(turn) * vy)
+        assert frame.odometry.velocity_xy is not None
+        errors.append(math.dist(frame.odometry.velocity_xy, expected))
+        turned.append(abs(turn))
+    assert errors[0] == 0.0 and turned[0] == 0.0
+    assert 0.0 < errors[1] < 0.25 and turned[1] > 0.0  # a few sigma of 0.05 m/s per axis

@@ -40,7 +40,9 @@ def test_payloads_round_trip() -> None:
     np.testing.assert_allclose(scan.bearings_rad, b, atol=1e-9)
     assert np.array_equal(np.isinf(scan.ranges_m), np.isinf(r) | (r >= 5.0))
     odom = decode_odometry(encode_odometry(Odometry(3.0, Pose2(1.0, -2.0, 0.5), 2)))
-    assert odom == Odometry(3.0, Pose2(1.0, -2.0, 0.5), 2)
+    assert odom == Odometry(3.0, Pose2(1.0, -2.0, 0.5), 2) and odom.velocity_xy is None
+    moving = Odometry(3.0, Pose2(1.0, -2.0, 0.5), 2, (0.75, -0.25))
+    assert decode_odometry(encode_odometry(moving)) == moving
     closure = LoopClosure(1.0, 9.0, Pose2(0.1, 0.2, -0.3))
     assert decode_loop_closure(encode_loop_closure(closure)) == closure
 
@@ -61,6 +63,16 @@ def test_payloads_round_trip() -> None:
             "non_finite",
         ),
         (b'{"schema": 1, "type": "odometry", "stamp_s": 1.0}', "missing"),
+        (
+            b'{"schema": 1, "type": "odometry", "stamp_s": 1.0, "pose": {"x_m": 0, "y_m": 0, "yaw_rad": 0},'
+            b' "velocity": [1.0, 0.0]}',
+            "missing",
+        ),
+        (
+            b'{"schema": 1, "type": "odometry", "stamp_s": 1.0, "pose": {"x_m": 0, "y_m": 0, "yaw_rad": 0},'
+            b' "velocity": {"x_mps": 1e999, "y_mps": 0}}',
+            "non_finite",
+        ),
         (b" " * (MAX_PAYLOAD_BYTES + 1), "oversized"),
     ],
 )

@@ -497,12 +497,17 @@ class Explorer:
             kf.odom_pose = correction.compose(kf.odom_pose)
 
     def _velocity_in_frame(self, odom: Odometry) -> tuple[float, float]:
-        """The vehicle's velocity over the last ``velocity_window_s``, in the current keyframe's frame."""
-        before = self.history.at(odom.stamp_s - self.params.velocity_window_s)
-        if before is None:
-            return (0.0, 0.0)
-        dt = self.params.velocity_window_s
-        vx, vy = (odom.pose.x_m - before.x_m) / dt, (odom.pose.y_m - before.y_m) / dt
+        """The vehicle's velocity in the current keyframe's frame: the estimator's own when the
+        odometry carries one (finite), else the pose differenced over ``velocity_window_s``."""
+        reported = odom.velocity_xy
+        if reported is not None and math.isfinite(reported[0]) and math.isfinite(reported[1]):
+            vx, vy = reported
+        else:
+            before = self.history.at(odom.stamp_s - self.params.velocity_window_s)
+            if before is None:
+                return (0.0, 0.0)
+            dt = self.params.velocity_window_s
+            vx, vy = (odom.pose.x_m - before.x_m) / dt, (odom.pose.y_m - before.y_m) / dt
         c, s = math.cos(self.anchor.yaw_rad), math.sin(self.anchor.yaw_rad)
         return (c * vx + s * vy, -s * vx + c * vy)
 

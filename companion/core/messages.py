@@ -17,11 +17,17 @@ from companion.core.geometry import FloatArray, Pose2
 
 @dataclass(frozen=True, slots=True)
 class Odometry:
-    """A state estimate sample: pose in the odometry frame at ``stamp_s`` (vehicle time)."""
+    """A state estimate sample: pose in the odometry frame at ``stamp_s`` (vehicle time).
+
+    ``velocity_xy`` is the estimator's own velocity (m/s, odometry frame), when the link carries
+    one: an autopilot's EKF fuses the IMU, so it is steadier than the pose differenced over a
+    fraction of a second, whose drift makes the heading of motion swing. None: the explorer
+    differences the pose."""
 
     stamp_s: float
     pose: Pose2
     reset_counter: int = 0
+    velocity_xy: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True, slots=True)

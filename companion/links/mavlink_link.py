@@ -38,6 +38,21 @@ PX4_MAIN_AUTO, PX4_SUB_LOITER, PX4_MAIN_OFFBOARD = 4, 3, 6
 ARDUPILOT_GUIDED, ARDUPILOT_LOITER, ARDUPILOT_LAND = 4, 5, 9
 
 
+def odometry_velocity_ned(child_frame_id: int, vx: float, vy: float, yaw_ned_rad: float) -> tuple[float, float] | None:
+    """ODOMETRY's horizontal velocity as (north, east), m/s. Its ``child_frame_id`` names the
+    velocity's frame (REP 147): the body (FRD; BODY_NED, deprecated, means the same for
+    velocities), turned by the heading, or the local frame the pose is in. Another frame, or a
+    NaN (unknown), gives None: the explorer then differences the pose."""
+    if not (math.isfinite(vx) and math.isfinite(vy)):
+        return None
+    if child_frame_id in (mavlink.MAV_FRAME_BODY_FRD, mavlink.MAV_FRAME_BODY_NED):
+        c, s = math.cos(yaw_ned_rad), math.sin(yaw_ned_rad)
+        return (c * vx - s * vy, s * vx + c * vy)
+    if child_frame_id in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD):
+        return (vx, vy)
+    return None
+
+
 @dataclass(frozen=True, slots=True)
 class MavlinkSettings:
     url: str
@@ -75,7 +90,8 @@ class MavlinkLink:
         self._on_scan: ScanHandler | None = None
         self._yaw_ned: float | None = None
         self._attitudes: deque[tuple[float, float]] = deque(maxlen=16)  # (stamp s, yaw NED)
-        self._pending_position: tuple[float, float, float] | None = None
+        # LOCAL_POSITION_NED waiting for its heading: stamp, north, east, and its NED velocity.
+        self._pending_position: tuple[float, float, float, float, float] | None = None
         self._odometry_seen_s = -math.inf
         self._odom_stamp_s: float | None = None  # vehicle time of the newest odometry
         self._last_input_s: dict[str, float] = {}
@@ -183,7 +199,8 @@ class MavlinkLink:
         elif kind == "LOCAL_POSITION_NED":
             self.height_m = -float(msg.z)
             if now - self._odometry_seen_s > 1.0:
-                self._pending_position = (msg.time_boot_ms / 1e3, float(msg.x), float(msg.y))
+                p = (msg.time_boot_ms / 1e3, float(msg.x), float(msg.y), float(msg.vx), float(msg.vy))
+                self._pending_position = p
                 self._pair_position_with_attitude(now)
         elif kind == "ATTITUDE":
             if math.isfinite(msg.yaw):
@@ -224,7 +241,7 @@ class MavlinkLink:
         between ATTITUDE samples), so a turn does not skew the pose; waits for the attitude."""
         if self._pending_position is None or not self._attitudes:
             return
-        stamp, north, east = self._pending_position
+        stamp, north, east, v_north, v_east = self._pending_position
         newest_t, newest_yaw = self._attitudes[-1]
         if newest_t < stamp and stamp - newest_t < 0.2:
             return  # the attitude for this instant has not arrived yet
@@ -235,7 +252,7 @@ class MavlinkLink:
                 yaw = y0 + w * math.remainder(y1 - y0, 2.0 * math.pi)
                 break
         self._pending_position = None
-        self._publish_odometry(stamp, north, east, yaw, 0, now)
+        self._publish_odometry(stamp, north, east, yaw, 0, now, (v_north, v_east))
 
     def _odometry(self, msg: Any, now: float) -> None:
         if msg.frame_id not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD):
@@ -250,10 +267,18 @@ class MavlinkLink:
         self.height_m = -float(msg.z)
         yaw = yaw_from_quaternion(q[0], q[1], q[2], q[3])
         self._yaw_ned = yaw
-        self._publish_odometry(msg.time_usec / 1e6, msg.x, msg.y, yaw, int(msg.reset_counter), now)
+        velocity = odometry_velocity_ned(msg.child_frame_id, float(msg.vx), float(msg.vy), yaw)
+        self._publish_odometry(msg.time_usec / 1e6, msg.x, msg.y, yaw, int(msg.reset_counter), now, velocity)
 
     def _publish_odometry(
-        self, stamp_s: float, north: float, east: float, yaw_ned: float, reset: int, now: float
+        self,
+        stamp_s: float,
+        north: float,
+        east: float,
+        yaw_ned: float,
+        reset: int,
+        now: float,
+        velocity_ned: tuple[float, float] | None = None,
     ) -> None:
         if not all(math.isfinite(v) for v in (stamp_s, north, east, yaw_ned)):
             self._drop("odometry", "non-finite value")
@@ -261,7 +286,10 @@ class MavlinkLink:
         self._last_input_s["odometry"] = now
         self._odom_stamp_s = stamp_s
         if self._on_odometry is not None:
-            self._on_odometry(Odometry(stamp_s, ned_to_core(north, east, yaw_ned), reset))
+            velocity = None
+            if velocity_ned is not None and all(math.isfinite(v) for v in velocity_ned):
+                velocity = (velocity_ned[1], velocity_ned[0])  # core axes: x east, y north
+            self._on_odometry(Odometry(stamp_s, ned_to_core(north, east, yaw_ned), reset, velocity))
 
     def _scan(self, msg: Any, now: float) -> None:
         od = ObstacleDistance(

@@ -80,9 +80,11 @@ def _pose_body(pose: Pose2) -> dict[str, float]:
 
 
 def encode_odometry(odom: Odometry) -> bytes:
-    return dumps(
-        "odometry", {"stamp_s": odom.stamp_s, "pose": _pose_body(odom.pose), "reset_counter": odom.reset_counter}
-    )
+    """The pose, and the estimator's velocity when it has one (``velocity``: x_mps, y_mps)."""
+    body: dict[str, Any] = {"stamp_s": odom.stamp_s, "pose": _pose_body(odom.pose), "reset_counter": odom.reset_counter}
+    if odom.velocity_xy is not None:
+        body["velocity"] = {"x_mps": odom.velocity_xy[0], "y_mps": odom.velocity_xy[1]}
+    return dumps("odometry", body)
 
 
 def decode_odometry(payload: bytes) -> Odometry:
@@ -90,7 +92,13 @@ def decode_odometry(payload: bytes) -> Odometry:
     reset = d.get("reset_counter", 0)
     if not isinstance(reset, int) or isinstance(reset, bool) or reset < 0:
         raise PayloadError("missing", "reset_counter must be a non-negative integer")
-    return Odometry(_number(d, "stamp_s"), _pose(d, "pose"), reset)
+    velocity = None
+    if d.get("velocity") is not None:
+        v = d["velocity"]
+        if not isinstance(v, dict):
+            raise PayloadError("missing", "velocity must be an object with x_mps, y_mps")
+        velocity = (_number(v, "x_mps"), _number(v, "y_mps"))
+    return Odometry(_number(d, "stamp_s"), _pose(d, "pose"), reset, velocity)
 
 
 # -- scans ------------------------------------------------------------------------------------
