@@ -217,7 +217,11 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
     only with a back end too: there it saved 4.6 % of the exploration time (22 maps, seeds 1-5);
     with own loop closures it saved 11 % but reached coverage 0.99 in 22 of 30 runs against 25
     (office 2 of 5 against 5; session 28, docs/benchmarks.md), so that mode keeps the check
-    along the motion's straight line."""
+    along the motion's straight line.
+
+    The estimator's velocity (when the odometry carries one) is taken only with a back end too:
+    there it saved 1.5 % of the time (22 maps, seeds 1-10); with own loop closures, six maps,
+    seeds 1-5, one run crashed (lshape 5) and loop seed 2 stopped at coverage 0.86 (session 37)."""
     if loop_closures not in ("back_end", "scan_matching", "none"):
         raise ValueError(f"unknown loop-closure source {loop_closures!r}")
     back_end = loop_closures == "back_end"
@@ -227,6 +231,7 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
             params,
             odometry_matching=replace(params.odometry_matching, enabled=False),
             lead=replace(params.lead, predict_way=False),
+            use_reported_velocity=False,
         )
     if loop_closures == "scan_matching":
         params = replace(

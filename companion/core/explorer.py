@@ -55,6 +55,10 @@ class ExplorerParams:
     flown_spacing_m: float = 0.5  # the way flown between keyframes is kept at this spacing
     loop_closure_max_gap_s: float = 5.0  # a loop closure needs a keyframe this close in time
     velocity_window_s: float = 0.2  # odometry differenced over this long for the vehicle's velocity
+    # Take the estimator's velocity when the odometry carries one (else difference the pose).
+    # Off without a SLAM back end: that mode's lead and goal choice were tuned on the differenced
+    # velocity, and with the steadier one a run crashed (lshape seed 5, session 37).
+    use_reported_velocity: bool = True
     # Obstacle returns of recent scans stay in the setpoint's lead limit: a door jamb that has
     # left the sensor's field of view beside the vehicle still stops it short of contact. They
     # are kept for this far of travel (odometry drifts with distance) and this long (people
@@ -500,7 +504,8 @@ class Explorer:
         """The vehicle's velocity in the current keyframe's frame: the estimator's own when the
         odometry carries one (finite), else the pose differenced over ``velocity_window_s``."""
         reported = odom.velocity_xy
-        if reported is not None and math.isfinite(reported[0]) and math.isfinite(reported[1]):
+        usable = reported is not None and math.isfinite(reported[0]) and math.isfinite(reported[1])
+        if reported is not None and usable and self.params.use_reported_velocity:
             vx, vy = reported
         else:
             before = self.history.at(odom.stamp_s - self.params.velocity_window_s)
