@@ -339,8 +339,7 @@ class MavlinkVehicle:
         ap = self.autopilot
         local = self._local(f.odometry.pose)
         north, east, yaw_ned = core_to_ned(local.x_m, local.y_m, local.yaw_rad)
-        v_east, v_north = f.odometry.velocity_xy or (0.0, 0.0)  # the estimator's (see sitl.drift)
-        vn, ve = v_north, v_east
+        ve, vn = f.odometry.velocity_xy or (0.0, 0.0)  # the estimator's, core axes (see sitl.drift)
         down = -ap.height_m
         usec = int(round(self.sim.time_s * 1e6))
         if msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:

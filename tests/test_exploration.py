@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.app import explorer_params, map_params, planner_params
+from companion.app import explorer_params, map_params, planner_params, tuning_for
 from companion.cli import main
 from companion.config import Config
 from companion.core.explorer import Explorer, ExplorerParams
@@ -188,6 +188,12 @@ def test_the_explorer_takes_the_estimators_velocity_when_the_odometry_carries_on
     assert ex._velocity_in_frame(moving) == pytest.approx((0.8, 0.0))
     for unknown in (None, (math.nan, 0.8)):
         assert ex._velocity_in_frame(Odometry(0.4, facing_north, 0, unknown)) == pytest.approx((0.0, 0.0))
+    ex = explorer(use_reported_velocity=False)  # without a back end (see companion.app.tuning_for)
+    for i in range(4):
+        ex.step(Odometry(0.1 * i, facing_north, 0, (0.0, 0.8)), DepthScan(0.1 * i, BEARINGS, np.full(64, 5.0), 5.0))
+    assert ex._velocity_in_frame(moving) == pytest.approx((0.0, 0.0))
+    assert tuning_for("back_end", 0.05).use_reported_velocity
+    assert not tuning_for("scan_matching", 0.05).use_reported_velocity
 
 
 def test_a_frontier_the_newest_scan_sees_as_wall_is_closed_without_flying_to_it():

@@ -504,8 +504,7 @@ class Explorer:
         """The vehicle's velocity in the current keyframe's frame: the estimator's own when the
         odometry carries one (finite), else the pose differenced over ``velocity_window_s``."""
         reported = odom.velocity_xy
-        usable = reported is not None and math.isfinite(reported[0]) and math.isfinite(reported[1])
-        if reported is not None and usable and self.params.use_reported_velocity:
+        if self.params.use_reported_velocity and reported is not None and all(map(math.isfinite, reported)):
             vx, vy = reported
         else:
             before = self.history.at(odom.stamp_s - self.params.velocity_window_s)
