@@ -374,7 +374,7 @@ def test_a_view_the_graph_placed_through_a_wall_the_keyframe_saw_does_not_close_
     """The same disagreement along the pose graph: keyframe A sees a wall 2 m ahead; C, reached
     from A only through far-away B, is placed 1.5 m ahead of A facing left, its open view
     reaching through that wall over A's side frontier. Closing A's frontiers through the graph,
-    with the chain longer than the drift margin covers, C is misplaced and closes nothing (a
+    C is misplaced and closes nothing, whether or not the drift margin covers the chain (a
     spiral corridor's views, 50 hops on and 2.6 m off, closed the next corridor's way on as
     seen). A cap of 5 cm stands for the 1 m that twenty hops reach by default."""
     wall = DepthScan(0.0, BEARINGS, 2.0 / np.cos(BEARINGS), 5.0)
@@ -402,7 +402,11 @@ def test_a_view_the_graph_placed_through_a_wall_the_keyframe_saw_does_not_close_
 
     assert side_vertex_open(0.3)
     assert not side_vertex_open(math.inf)  # trusted, the misplaced view closes it
-    assert not side_vertex_open(0.3, cap_m=1.0)  # two hops: the margin covers the drift
+    # Within the margin's cap too: the margin is a guess at the drift, a wall deep in the other's
+    # free space is seen (views of the room beside a corridor, 18-20 hops on and placed 0.8-1.9 m
+    # across its wall, closed its way on as seen: campus seed 9 `complete` at coverage 0.88).
+    assert side_vertex_open(0.3, cap_m=1.0)
+    assert not side_vertex_open(math.inf, cap_m=1.0)  # agreeing, within the margin: it closes
     # Without loop closures every revisit is a long chain: trusted, or exploration never ends.
     assert not side_vertex_open(0.3, no_loop_closures=True)
 

@@ -654,6 +654,32 @@ def test_a_frontier_that_used_up_its_tries_is_tried_once_more_from_its_own_keyfr
     assert at_origin.goal in planner.set_aside
 
 
+def test_a_vehicle_braking_past_its_routes_end_backs_up_to_it_facing_the_keyframes_way():
+    """The route's end is the keyframe just taken, and the vehicle brakes past its origin. Within
+    the waypoint radius it backs up there facing the way that keyframe looked, as it will once
+    there: turned round to face a hop that short, it turned back on arrival (5 s on one spot in
+    lshape seed 1). Farther off it turns to face its way first, as on any leg."""
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    keys = [FrontierKey(kf.keyframe_id, int(i)) for i in targetable_indices(kf, PlannerParams().min_frontier_size_m)]
+    p = PlannerParams(max_attempts=2)
+    for past_m, backs_up in ((0.4, True), (0.8, False)):
+        assert (past_m <= p.waypoint_reached_m) == backs_up
+        planner = FrontierPlanner(p)
+        for k in keys:  # tries used up elsewhere: from its origin only, so the vehicle goes there
+            planner._failed(k, 50.0)
+            planner._failed(k, 60.0)
+        vehicle = Pose2(past_m, 0.0, 0.0)
+        decision = planner.plan(m, kf.keyframe_id, vehicle, 100.0, velocity_xy=(1.0, 0.0))
+        assert decision.mode is Mode.BACKTRACKING and planner.route is not None
+        assert planner.route.keyframes == [kf.keyframe_id]
+        t = decision.target
+        if backs_up:
+            assert math.hypot(t.x_m, t.y_m) < 1e-9 and abs(t.yaw_rad) < 1e-9
+        else:
+            assert math.isclose(abs(t.yaw_rad), math.pi, abs_tol=1e-6)  # turns round to face its way
+
+
 def test_a_frontier_where_the_vehicle_already_flew_and_looked_is_closed_not_flown_to_again():
     """Without loop closures, a route restarted from one spot every 16 s: each new view there
     offered a frontier vertex at the place the vehicle had just flown to and looked at, whose

@@ -991,6 +991,16 @@ class FrontierPlanner:
             )
             return Decision(Mode.BACKTRACKING, hold, relocalize_to=nxt)
         aim = points[0]
+        if (
+            nxt == route.target_keyframe
+            and points.shape[0] == 1
+            and float(np.hypot(*(aim - here))) <= self.params.waypoint_reached_m
+        ):
+            # Overshot the route's end (braking past the origin of its target, often the keyframe
+            # just taken): back up to it facing the way that keyframe looked, as the vehicle will
+            # once there. Turned round to face so short a hop, it turned back on arrival: 5 s on
+            # the spot for half a metre (lshape seed 1). It has just flown through that space.
+            return Decision(Mode.BACKTRACKING, Target(float(aim[0]), float(aim[1]), pose.yaw_rad))
         travel = float(np.arctan2(*(aim - here)[::-1]))
         return self._fly(vehicle, aim, travel, Mode.BACKTRACKING, None)
 
