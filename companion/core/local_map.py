@@ -396,14 +396,14 @@ class LocalMap:
         lends = inside.any(axis=(1, 2))
         if near is not None:
             lends[np.unique(owner[near.any(axis=0)])] = True
-        # Not without loop closures, as past the cap: there every revisit is such a chain.
-        ask = np.flatnonzero(lends & ~past_cap & (hops >= p.misplaced_min_hops))
-        if p.close_new_through_graph:
-            ask = ask[:0]
-        if ask.size:
-            at = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses[ask]]
-            walls_ask = [self.keyframes[int(ids[i])].walls for i in ask]
-            bad = ask[self._disagree(keyframe_id, kf.polygon.shape, move_each(at, shapes[ask]), at, walls_ask)]
+        # Not without loop closures (as past the cap): there every revisit is such a chain.
+        far_in = lends & ~past_cap & (hops >= p.misplaced_min_hops) & (not p.close_new_through_graph)
+        doubtful = np.flatnonzero(far_in)
+        if doubtful.size:
+            at = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses[doubtful]]
+            their_walls = [self.keyframes[int(ids[i])].walls for i in doubtful]
+            found = self._disagree(keyframe_id, kf.polygon.shape, move_each(at, shapes[doubtful]), at, their_walls)
+            bad = doubtful[found]
             if bad.size:
                 inside[bad] = False
                 if near is not None:
