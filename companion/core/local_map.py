@@ -344,10 +344,9 @@ class LocalMap:
         # the chain may lie across a wall from where it was taken (a 1.5 m spiral corridor's
         # views 50 hops on lay 2.6 m off, and closed the next corridor's frontiers as seen):
         # such a view closes nothing (``chain_closes_past_cap``), or, with that set, only when
-        # it does not disagree with the keyframe as a misplaced neighbour does (walls inside the
-        # other's free space). Not without loop closures: there every revisit is such a chain,
-        # and closing through it is what lets exploration end at all (the trade-off
-        # ``close_new_through_graph`` makes).
+        # it does not disagree with the keyframe (below). Not without loop closures: there every
+        # revisit is such a chain, and closing through it is what lets exploration end at all
+        # (the trade-off ``close_new_through_graph`` makes).
         past_cap = (p.chain_margin_per_hop_m * hops > p.chain_max_margin_m) & (not p.close_new_through_graph)
         if past_cap.any() and not p.chain_closes_past_cap:
             keep = ~past_cap
@@ -355,18 +354,6 @@ class LocalMap:
             past_cap = past_cap[keep]
             if ids.size == 0:
                 return 0
-        far = np.flatnonzero(past_cap & (hops >= p.misplaced_min_hops))
-        if far.size:
-            at = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses[far]]
-            walls_far = [self.keyframes[int(ids[i])].walls for i in far]
-            bad = far[self._disagree(keyframe_id, kf.polygon.shape, move_each(at, shapes[far]), at, walls_far)]
-            if bad.size:
-                keep = np.ones(ids.size, dtype=bool)
-                keep[bad] = False
-                ids, hops, poses, shapes, depth = ids[keep], hops[keep], poses[keep], shapes[keep], depth[keep]
-                past_cap = past_cap[keep]
-                if ids.size == 0:
-                    return 0
         # Every open vertex and its point just beyond, moved into every view's frame at once.
         v = kf.polygon.vertices_xy[idx]
         pts = np.stack((v, v + p.closing_offset_m * kf.polygon.outward_xy[idx]))  # (2, vertices, 2)
@@ -387,18 +374,18 @@ class LocalMap:
         shadow = kf.polygon.on_shadow[idx]
         snap = p.graph_wall_snap_m > 0.0 and segments.shape[0] > 0
         near = _near_walls(v, shadow, segments, seen_from, p.graph_wall_snap_m, p.wall_behind_m) if snap else None
-        # Nor does a view the margin covers close anything when it disagrees with this keyframe
-        # as a misplaced neighbour does (walls deep in each other's free space), however the
-        # chain's drift compares with the margin: views of the room beside a corridor, 18-20
-        # hops on and placed 0.8-1.9 m off across its wall, closed the corridor's way on as
-        # seen (campus seed 9 `complete` at coverage 0.88, in a variant).
+        # No view far along closes anything, nor lends a wall, when it disagrees with this keyframe
+        # as a misplaced neighbour does (walls deep in each other's free space), past the cap or
+        # within it, however the chain's drift compares with the margin: views of the room beside
+        # a corridor, 18-20 hops on and placed 0.8-1.9 m off across its wall, closed the
+        # corridor's way on as seen (campus seed 9 `complete` at coverage 0.88, in a variant).
+        # Not without loop closures (as past the cap): there every revisit is such a chain.
         owner = np.repeat(np.arange(ids.size), wall_counts)
         lends = inside.any(axis=(1, 2))
         if near is not None:
             lends[np.unique(owner[near.any(axis=0)])] = True
-        # Not without loop closures (as past the cap): there every revisit is such a chain.
-        far_in = lends & ~past_cap & (hops >= p.misplaced_min_hops) & (not p.close_new_through_graph)
-        doubtful = np.flatnonzero(far_in)
+        far = lends & (hops >= p.misplaced_min_hops) & (not p.close_new_through_graph)
+        doubtful = np.flatnonzero(far)
         if doubtful.size:
             at = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses[doubtful]]
             their_walls = [self.keyframes[int(ids[i])].walls for i in doubtful]
