@@ -329,8 +329,9 @@ def test_a_sliver_of_another_view_does_not_close_a_frontier_deep_space_does():
 
 def test_a_frontier_vertex_with_a_wall_just_beyond_it_in_another_view_closes():
     """The depth rule asks for deep free space beyond a frontier vertex, or a wall: space another
-    view saw up to a wall 0.3 m past the vertex is all there is to see there."""
-    m = LocalMap()
+    view saw up to a wall 0.3 m past the vertex is all there is to see there. (The vertex is at
+    the range limit: the range-limit snap, off here, would close it as that wall first.)"""
+    m = LocalMap(MapParams(range_limit_snap_m=0.0))
     a_id, a_pose = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
     a = m.keyframes[a_id]
     v = int(np.argmin(np.hypot(*(a.polygon.vertices_xy - (5.0, 0.0)).T)))
@@ -430,6 +431,26 @@ def test_a_frontier_vertex_on_a_wall_another_view_saw_closes_as_that_wall():
     kinds = a.kinds.copy()
     kinds[gap] = VertexKind.FRONTIER  # one left open between two of them
     assert run_sizes_m(kinds, v)[gap] > 0.0
+
+
+@pytest.mark.parametrize("range_limit_snap_m", [0.15, 0.35])
+def test_a_range_limit_vertex_a_little_beyond_a_neighbours_wall_closes_as_that_wall(range_limit_snap_m):
+    """A's arc ends at its 5 m range limit; B, 1.5 m ahead, was placed (by drift) with a wall
+    across 0.25 m short of that arc, so A's arc lies a little behind B's wall. Where a wall
+    leaves the sensor's range, the last ray's limit lies on the wall: A's range-limit vertices
+    by B's wall close as that wall within ``range_limit_snap_m`` (they stay open within the
+    ordinary ``wall_snap_m`` alone); A's side vertices, nearer its origin, are left alone."""
+    m = LocalMap(MapParams(range_limit_snap_m=range_limit_snap_m))
+    a_id, a_pose = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+    a = m.keyframes[a_id]
+    wall = DepthScan(0.0, BEARINGS, 3.25 / np.cos(BEARINGS), 5.0)  # a wall across at x = 4.75
+    add_pose(m, Pose2(1.5, 0.0, 0.0), (a_id, a_pose), wall)
+    v = a.polygon.vertices_xy
+    by_wall = a.at_range_limit & (v[:, 0] > 4.9) & (np.abs(v[:, 1]) < 1.0)
+    assert np.count_nonzero(by_wall) >= 3
+    assert not np.any(a.at_range_limit & (np.hypot(v[:, 0], v[:, 1]) < 4.9))  # only the arc is at the limit
+    closed = a.kinds[by_wall] == VertexKind.OBSTACLE
+    assert closed.all() if range_limit_snap_m > 0.25 else not closed.any()
 
 
 def test_a_shadow_edge_vertex_behind_the_face_of_a_wall_another_view_saw_is_not_that_wall():

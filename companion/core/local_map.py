@@ -41,6 +41,14 @@ class MapParams:
     misplaced_depth_m: float = 0.3
     misplaced_min_hops: int = 6  # nearer along the graph, drift is too small to place a view so far off
     wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
+    # A vertex at the sensor's range limit (no return on its ray) closes on a neighbour's wall
+    # this close: where a wall leaves the range, the last ray's limit lies on it, and neighbours
+    # placed 0.3 m off by drift left such vertices open, flown back to after coverage was full
+    # (spiral seed 3: 99 keyframes back for one, at 195 s of 347 s). Shadow and field-of-view
+    # side vertices keep the tighter snap (a door's lie beyond its jamb), and so do views along
+    # the graph (``graph_wall_snap_m``): drift along a chain is larger, and without loop
+    # closures the room ended `complete` at coverage 0.95 when they snapped this far too.
+    range_limit_snap_m: float = 0.35
     # The neighbourhood walk goes on through this many views in a row that do not overlap the
     # keyframe: a turn in place leaves views looking away between two that see the same place.
     neighbourhood_bridge_hops: int = 4
@@ -79,6 +87,11 @@ class MapParams:
     slivers: SliverParams = field(default_factory=SliverParams)
 
 
+def _snaps_m(at_range_limit: NDArray[np.bool_], snap_m: float, range_limit_snap_m: float) -> FloatArray:
+    """Each vertex's wall snap: ``snap_m``, or at least ``range_limit_snap_m`` at the range limit."""
+    return np.where(at_range_limit, max(snap_m, range_limit_snap_m), snap_m)
+
+
 @dataclass(slots=True)
 class Keyframe:
     """A pose-graph vertex: its polygon (immutable) and the current kind of each vertex."""
@@ -90,6 +103,7 @@ class Keyframe:
     kinds: NDArray[np.int8] = field(init=False)
     radius_m: float = field(init=False)
     walls: FloatArray = field(init=False)  # the polygon's obstacle edges (M, 2, 2), computed once
+    at_range_limit: NDArray[np.bool_] = field(init=False)  # frontier vertices with no return on their ray
     open_edges: FloatArray = field(init=False)  # and its other edges, bordering unseen space
     corners_xy: FloatArray = field(init=False)  # the polygon shape's own coordinates (N, 2)
     version: int = field(init=False, default=0)  # bumped by every :meth:`close`
@@ -101,6 +115,10 @@ class Keyframe:
         self.kinds = self.polygon.kinds.copy()
         self.radius_m = float(np.max(np.linalg.norm(self.polygon.vertices_xy, axis=1)))
         self.walls = self.polygon.obstacle_segments()
+        norms = np.linalg.norm(self.polygon.vertices_xy, axis=1)
+        self.at_range_limit = (
+            (self.polygon.kinds == VertexKind.FRONTIER) & ~self.polygon.on_shadow & (norms >= self.radius_m - 1e-6)
+        )
         self.open_edges = self.polygon.open_segments()
         self.corners_xy = shapely.get_coordinates(self.polygon.shape)
 
@@ -659,7 +677,8 @@ class LocalMap:
 
     def _close_at_walls(self, kf_id: int, view: LocalView) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
-        sensor's limit leaves such vertices, and nothing beyond them can ever be seen). All in
+        sensor's limit leaves such vertices, and nothing beyond them can ever be seen): within
+        ``wall_snap_m``, or ``range_limit_snap_m`` for a vertex at the range limit. All in
         the new keyframe's frame (its ``view``): its open vertices against every neighbour's
         walls at once, and every neighbour's open vertices against its own walls.
 
@@ -667,10 +686,10 @@ class LocalMap:
         closure 0.35 m off placed a view two hops away with a wall across a cave's passage, and
         the passage's frontiers closed on it (cave seed 5: `complete` at coverage 0.52)."""
         kf = self.keyframes[kf_id]
-        snap = self.params.wall_snap_m
+        p = self.params
         own_walls = kf.walls
         own = kf.open_frontier_indices()
-        behind = self.params.wall_behind_m
+        behind = p.wall_behind_m
         others = list(view.poses)[1:]  # the view's own keyframe comes first, its walls too
         if own.size:
             theirs = slice(own_walls.shape[0], None)
@@ -679,7 +698,7 @@ class LocalMap:
                 kf.polygon.on_shadow[own],
                 view.walls_xy[theirs],
                 view.walls_seen_from_xy[theirs],
-                snap,
+                _snaps_m(kf.at_range_limit[own], p.wall_snap_m, p.range_limit_snap_m),
                 behind,
             )
             if near.any():
@@ -698,6 +717,8 @@ class LocalMap:
             return
         pts = apply_grouped(poses, [other.polygon.vertices_xy[i] for other, i in zip(kfs, idx, strict=True)])
         shadow = np.concatenate([other.polygon.on_shadow[i] for other, i in zip(kfs, idx, strict=True)])
+        limit = np.concatenate([other.at_range_limit[i] for other, i in zip(kfs, idx, strict=True)])
+        snap = _snaps_m(limit, p.wall_snap_m, p.range_limit_snap_m)
         own_from = np.zeros((own_walls.shape[0], 2))  # seen from this keyframe's origin
         on: NDArray[np.bool_] = np.asarray(_near_walls(pts, shadow, own_walls, own_from, snap, behind).any(axis=1))
         if on.any():
@@ -724,7 +745,7 @@ def _near_walls(
     on_shadow: NDArray[np.bool_],
     segments: FloatArray,
     seen_from_xy: FloatArray,
-    snap_m: float,
+    snap_m: float | FloatArray,
     behind_m: float,
 ) -> NDArray[np.bool_]:
     """(N, M): which frontier vertices (``points_xy``) lie on which walls (segments (M, 2, 2), each
@@ -740,13 +761,14 @@ def _near_walls(
     if segments.shape[0] == 0 or points_xy.shape[0] == 0:
         return out
     # Only the segments whose bounding box comes within the snap of the points' box can be near.
-    lo, hi = points_xy.min(axis=0) - snap_m, points_xy.max(axis=0) + snap_m
+    snap = np.broadcast_to(np.asarray(snap_m, dtype=np.float64), points_xy.shape[:1])
+    lo, hi = points_xy.min(axis=0) - snap.max(), points_xy.max(axis=0) + snap.max()
     seg_lo, seg_hi = segments.min(axis=1), segments.max(axis=1)
     keep = np.all((seg_hi >= lo) & (seg_lo <= hi), axis=1)
     segments, seen_from_xy = segments[keep], seen_from_xy[keep]
     if segments.shape[0] == 0:
         return out
-    near = point_segment_distances(points_xy, segments) < snap_m  # (N, M)
+    near = point_segment_distances(points_xy, segments) < snap[:, None]  # (N, M)
     if on_shadow.any():
         a, along = segments[:, 0], segments[:, 1] - segments[:, 0]
         normal = np.column_stack((-along[:, 1], along[:, 0])) / np.maximum(np.hypot(*along.T), 1e-12)[:, None]
