@@ -26,6 +26,25 @@ def scan(ranges, bearings=BEARINGS, max_range=5.0):
     return DepthScan(0.0, bearings, np.asarray(ranges, dtype=float), max_range)
 
 
+def test_only_rays_without_a_return_are_at_the_range_limit():
+    """No return (``inf`` or the maximum) is the range limit; an invalid return (NaN, pinched to
+    the minimum range) is a frontier too but not there, nor are the sides' frontier vertices or
+    the hits."""
+    r = np.full(64, 3.0)
+    r[:20] = np.inf
+    r[20:28] = 5.0
+    r[40:48] = np.nan
+    poly = scan_to_polygon(scan(r))
+    norm = np.linalg.norm(poly.vertices_xy, axis=1)
+    limit = poly.at_range_limit
+    assert limit.any() and np.allclose(norm[limit], 5.0)
+    frontier = poly.kinds == VertexKind.FRONTIER
+    assert np.all(frontier[limit])
+    assert np.any(frontier & (norm < 1.0)) and not np.any(limit & (norm < 1.0))  # the invalid rays
+    assert np.any(frontier & ~limit & (norm > 1.0))  # the sides' vertices
+    assert not np.any(limit & (poly.kinds == VertexKind.OBSTACLE))
+
+
 def test_open_space_gives_frontier_arc_and_origin_first():
     poly = scan_to_polygon(scan(np.full(64, 5.0)))
     assert poly.has_origin and np.allclose(poly.vertices_xy[0], 0.0)

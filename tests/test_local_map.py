@@ -446,9 +446,9 @@ def test_a_range_limit_vertex_a_little_beyond_a_neighbours_wall_closes_as_that_w
     wall = DepthScan(0.0, BEARINGS, 3.25 / np.cos(BEARINGS), 5.0)  # a wall across at x = 4.75
     add_pose(m, Pose2(1.5, 0.0, 0.0), (a_id, a_pose), wall)
     v = a.polygon.vertices_xy
-    by_wall = a.at_range_limit & (v[:, 0] > 4.9) & (np.abs(v[:, 1]) < 1.0)
+    by_wall = a.polygon.at_range_limit & (v[:, 0] > 4.9) & (np.abs(v[:, 1]) < 1.0)
     assert np.count_nonzero(by_wall) >= 3
-    assert not np.any(a.at_range_limit & (np.hypot(v[:, 0], v[:, 1]) < 4.9))  # only the arc is at the limit
+    assert not np.any(a.polygon.at_range_limit & (np.hypot(v[:, 0], v[:, 1]) < 4.9))  # only the arc is at the limit
     closed = a.kinds[by_wall] == VertexKind.OBSTACLE
     assert closed.all() if range_limit_snap_m > 0.25 else not closed.any()
 
@@ -515,7 +515,13 @@ def hand_polygon(vertices: list[tuple[float, float]], kinds: list[VertexKind]) -
 
     v = np.array(vertices, dtype=np.float64)
     return FovPolygon(
-        v, np.array(kinds, dtype=np.int8), _outward_normals(v), False, shapely.Polygon(v), np.zeros(len(v), dtype=bool)
+        v,
+        np.array(kinds, dtype=np.int8),
+        _outward_normals(v),
+        False,
+        shapely.Polygon(v),
+        np.zeros(len(v), dtype=bool),
+        np.zeros(len(v), dtype=bool),
     )
 
 

@@ -73,6 +73,9 @@ class FovPolygon:
     # Which vertices lie on an occlusion's shadow edge (the space beyond them is hidden behind an
     # occluder, often a door's jamb, not at the sensor's range or field-of-view limit).
     on_shadow: NDArray[np.bool_]
+    # Which lie at the sensor's range limit (no return on their ray): not shadow, not invalid
+    # returns (pinched to the minimum range), not the field of view's sides.
+    at_range_limit: NDArray[np.bool_]
 
     @property
     def size(self) -> int:
@@ -279,6 +282,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     pts = np.column_stack((ranges * np.cos(bearings), ranges * np.sin(bearings)))
     keep = _subsample(pts, frontier, p.min_vertex_spacing_m)
     pts, frontier, shadow = pts[keep], frontier[keep], shadow[keep]
+    limit = frontier & ~shadow & (ranges[keep] >= scan.max_range_m)  # no return: set to the maximum
     span = scan.bearings_rad[-1] - scan.bearings_rad[0]
     increment = span / (scan.bearings_rad.size - 1)
     has_origin = span + 1.5 * increment < 2.0 * math.pi
@@ -288,6 +292,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
         last = _side_points(pts[-1], p.side_frontier_spacing_m)[::-1]
         pts = np.vstack((np.zeros((1, 2)), first, pts, last))
         shadow = np.concatenate((np.zeros(1 + first.shape[0], dtype=bool), shadow, np.zeros(last.shape[0], dtype=bool)))
+        limit = np.concatenate((np.zeros(1 + first.shape[0], dtype=bool), limit, np.zeros(last.shape[0], dtype=bool)))
         kinds = np.concatenate(
             (
                 np.array([VertexKind.FREE], dtype=np.int8),
@@ -300,7 +305,7 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
     if not shape.is_valid:
         shape = _largest_valid_part(shape)
     shapely.prepare(shape)
-    return FovPolygon(pts, kinds, _outward_normals(pts), has_origin, shape, shadow)
+    return FovPolygon(pts, kinds, _outward_normals(pts), has_origin, shape, shadow, limit)
 
 
 def _side_points(end_xy: FloatArray, spacing_m: float) -> FloatArray:

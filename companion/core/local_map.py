@@ -103,7 +103,6 @@ class Keyframe:
     kinds: NDArray[np.int8] = field(init=False)
     radius_m: float = field(init=False)
     walls: FloatArray = field(init=False)  # the polygon's obstacle edges (M, 2, 2), computed once
-    at_range_limit: NDArray[np.bool_] = field(init=False)  # frontier vertices with no return on their ray
     open_edges: FloatArray = field(init=False)  # and its other edges, bordering unseen space
     corners_xy: FloatArray = field(init=False)  # the polygon shape's own coordinates (N, 2)
     version: int = field(init=False, default=0)  # bumped by every :meth:`close`
@@ -115,10 +114,6 @@ class Keyframe:
         self.kinds = self.polygon.kinds.copy()
         self.radius_m = float(np.max(np.linalg.norm(self.polygon.vertices_xy, axis=1)))
         self.walls = self.polygon.obstacle_segments()
-        norms = np.linalg.norm(self.polygon.vertices_xy, axis=1)
-        self.at_range_limit = (
-            (self.polygon.kinds == VertexKind.FRONTIER) & ~self.polygon.on_shadow & (norms >= self.radius_m - 1e-6)
-        )
         self.open_edges = self.polygon.open_segments()
         self.corners_xy = shapely.get_coordinates(self.polygon.shape)
 
@@ -698,7 +693,7 @@ class LocalMap:
                 kf.polygon.on_shadow[own],
                 view.walls_xy[theirs],
                 view.walls_seen_from_xy[theirs],
-                _snaps_m(kf.at_range_limit[own], p.wall_snap_m, p.range_limit_snap_m),
+                _snaps_m(kf.polygon.at_range_limit[own], p.wall_snap_m, p.range_limit_snap_m),
                 behind,
             )
             if near.any():
@@ -717,7 +712,7 @@ class LocalMap:
             return
         pts = apply_grouped(poses, [other.polygon.vertices_xy[i] for other, i in zip(kfs, idx, strict=True)])
         shadow = np.concatenate([other.polygon.on_shadow[i] for other, i in zip(kfs, idx, strict=True)])
-        limit = np.concatenate([other.at_range_limit[i] for other, i in zip(kfs, idx, strict=True)])
+        limit = np.concatenate([other.polygon.at_range_limit[i] for other, i in zip(kfs, idx, strict=True)])
         snap = _snaps_m(limit, p.wall_snap_m, p.range_limit_snap_m)
         own_from = np.zeros((own_walls.shape[0], 2))  # seen from this keyframe's origin
         on: NDArray[np.bool_] = np.asarray(_near_walls(pts, shadow, own_walls, own_from, snap, behind).any(axis=1))
