@@ -47,7 +47,7 @@ class MapParams:
     # (spiral seed 3: 99 keyframes back for one, at 195 s of 347 s). Shadow and field-of-view
     # side vertices keep the tighter snap (a door's lie beyond its jamb), and so do views along
     # the graph (``graph_wall_snap_m``): drift along a chain is larger, and without loop
-    # closures the room ended `complete` at coverage 0.95 when they snapped this far too.
+    # closures the room's run ended at coverage 0.95 when they snapped this far too.
     range_limit_snap_m: float = 0.35
     # The neighbourhood walk goes on through this many views in a row that do not overlap the
     # keyframe: a turn in place leaves views looking away between two that see the same place.
