@@ -97,7 +97,11 @@ def test_without_loop_closures_exploration_still_ends_by_itself(shipped_maps):
     lets the room end (not run to the time limit) at full coverage."""
     base = SimParams()
     no_slam = SimParams(base.sensor, base.vehicle, base.drift, SlamParams(enabled=False), base.physics_rate_hz)
-    params = ExplorerParams(map=map_params(False, drift_m_per_keyframe=0.05), planner=planner_params(False))
+    params = ExplorerParams(
+        map=map_params(False, drift_m_per_keyframe=0.05),
+        planner=planner_params(False),
+        obstacle_memory_margin_m=tuning_for("none", 0.05).obstacle_memory_margin_m,
+    )
     assert params.map.close_new_through_graph and params.map.neighbourhood_bridge_hops == 0
     world = load_world(shipped_maps / "room.geojson")
     r = run_exploration(world, "polygon", seed=1, max_time_s=900, sim_params=no_slam, explorer_params=params).report
@@ -527,11 +531,22 @@ def test_drifting_towards_a_remembered_wall_holds_the_setpoint_short_of_it():
 
 def test_remembered_returns_go_when_the_sensor_sees_through_them_or_after_travel():
     """An old return where the newest scan sees free space is dropped (drift moved it, or it was
-    never there); the rest go once the vehicle has travelled the memory's distance."""
+    never there), except within the memory's margin of the field of view's edges (the scan does
+    not see all round those); the rest go once the vehicle has travelled the memory's distance."""
     ex = explorer(obstacle_memory_m=1.5)
     ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), _wall_ahead_scan(0.0, 2.0))
     ex.step(Odometry(0.1, Pose2(0.0, 0.0, 0.0)), DepthScan(0.1, BEARINGS, np.full(64, 5.0), 5.0))
-    assert ex.obstacles_xy.shape[0] == 0  # seen through: the same rays now reach 5 m
+    kept = ex.obstacles_xy  # seen through: the same rays now reach 5 m
+    margin_rad = np.arcsin(ExplorerParams().obstacle_memory_margin_m * np.cos(BEARINGS) / 2.0)  # at 2 m / cos
+    by_edge = np.abs(BEARINGS) + margin_rad > BEARINGS[-1]
+    assert 0 < by_edge.sum() < 8 and kept.shape[0] == by_edge.sum()
+    assert np.allclose(np.sort(np.arctan2(kept[:, 1], kept[:, 0])), BEARINGS[by_edge])
+    ex = explorer(obstacle_memory_m=1.5, obstacle_memory_margin_m=0.0)
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), _wall_ahead_scan(0.0, 2.0))
+    ex.step(Odometry(0.1, Pose2(0.0, 0.0, 0.0)), DepthScan(0.1, BEARINGS, np.full(64, 5.0), 5.0))
+    assert ex.obstacles_xy.shape[0] == 0  # without the margin, every one
+    assert tuning_for("back_end", 0.05).obstacle_memory_margin_m > 0.0  # measured there (session 41)
+    assert tuning_for("scan_matching", 0.05).obstacle_memory_margin_m == 0.0
     ex.step(Odometry(0.2, Pose2(0.0, 0.0, -math.pi / 2)), _wall_ahead_scan(0.2, 1.0))  # a wall south
     ex.step(Odometry(0.3, Pose2(0.0, 0.0, 0.3)), DepthScan(0.3, BEARINGS, np.full(64, 5.0), 5.0))
     assert ex.obstacles_xy.shape[0] == 64  # out of view now, so kept

@@ -79,6 +79,11 @@ class ExplorerParams:
     scan_odometry_wait_s: float = 0.5
     obstacle_memory_s: float = 60.0
     obstacle_memory_m: float = 1.5
+    # How well a remembered return is known (drift since): one the newest scan sees through
+    # within this of its field of view's edge stays remembered. Its wall's end may lie just
+    # outside, where no ray passes: forgotten, the vehicle turned round a wall's end into it
+    # (apartment seed 4, in a variant). Returns the scan sees as surface go as before.
+    obstacle_memory_margin_m: float = 0.1
     lead: LeadParams = field(default_factory=LeadParams)  # how far setpoints may lead the vehicle
     # Loop closures of the companion's own, by matching each new view to old ones (for links
     # that bring none: MAVLink has no loop-closure message).
@@ -148,9 +153,10 @@ class RecentReturns:
     """Obstacle returns of the scans of the last ``memory_s`` seconds and ``memory_m`` metres of
     travel, in the odometry frame."""
 
-    def __init__(self, memory_s: float, memory_m: float) -> None:
+    def __init__(self, memory_s: float, memory_m: float, margin_m: float = 0.0) -> None:
         self.memory_s = memory_s
         self.memory_m = memory_m
+        self.margin_m = margin_m  # see in_view: seen through this near the view's edge, kept
         self._scans: deque[tuple[float, float, FloatArray]] = deque()  # stamp, travelled, points
 
     def add(self, stamp_s: float, travelled_m: float, points_xy: FloatArray) -> None:
@@ -176,12 +182,13 @@ class RecentReturns:
     def forget_seen(self, scan: DepthScan, sensor: Pose2) -> None:
         """Forget the earlier scans' points that ``scan`` (the newest, taken at ``sensor``) has
         its own say about (:func:`in_view`): drift moves old returns a little, and where the
-        sensor looks now it is the authority. What stays is out of its view, or its own points
-        (when it was added already: it is the newest kept, at its stamp)."""
+        sensor looks now it is the authority. What stays is out of its view (or seen through
+        within ``margin_m`` of its edge), or its own points (when it was added already: it is
+        the newest kept, at its stamp)."""
         pts = self.points_xy()
         added = bool(self._scans) and self._scans[-1][0] == scan.stamp_s
         older = pts.shape[0] - (self.newest_count() if added else 0)
-        covered = in_view(scan, sensor, pts[:older])
+        covered = in_view(scan, sensor, pts[:older], self.margin_m)
         if covered.any():
             self.keep(np.concatenate((~covered, np.ones(pts.shape[0] - older, dtype=bool))))
 
@@ -222,7 +229,9 @@ class Explorer:
         self.odometry_edges_matched = 0  # odometry edges corrected by matching (see odometry_matching)
         self._live: tuple[Pose2, FloatArray, DepthScan] | None = None  # newest scan: pose, returns, scan
         self._newest_view_memo: tuple[DepthScan, shapely.Geometry] | None = None  # see _newest_view
-        self._recent = RecentReturns(self.params.obstacle_memory_s, self.params.obstacle_memory_m)
+        self._recent = RecentReturns(
+            self.params.obstacle_memory_s, self.params.obstacle_memory_m, self.params.obstacle_memory_margin_m
+        )
         self._travelled_m = 0.0  # odometry path length, to age the recent returns by
         self._obstacles_xy: FloatArray = np.zeros((0, 2))  # recent returns for this step, odometry frame
         self._keyframe_stamps: tuple[list[float], list[int]] = ([], [])  # sorted by stamp, for closures

@@ -392,16 +392,26 @@ def behind_scanned_surface(
     return hidden
 
 
-def in_view(scan: DepthScan, sensor: Pose2, points_xy: FloatArray) -> NDArray[np.bool_]:
+def in_view(scan: DepthScan, sensor: Pose2, points_xy: FloatArray, margin_m: float = 0.0) -> NDArray[np.bool_]:
     """Which points the scan has its own say about: inside the field of view, on a ray with a
     valid reading, at or beyond the minimum range (and within the maximum range where the ray
     returned nothing). Such a point is seen through, seen as the surface the ray returned from,
     or hidden behind it; a remembered return there is superseded by the scan. Points nearer than
-    the minimum range, or on rays with an invalid (NaN) reading, the scan cannot see."""
+    the minimum range, or on rays with an invalid (NaN) reading, the scan cannot see. Nor, with
+    a ``margin_m`` (how well a remembered point is known), one its ray sees through (returns
+    more than that beyond it) but that lies within that margin of the field of view's edge: the
+    wall's end it was seen on may lie just outside, where no ray passes."""
     rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
     r = scan.ranges_m[j]
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(r) & (r >= scan.min_range_m) | np.isposinf(r)
         out_of_range = (rng > scan.max_range_m) & ~(r < scan.max_range_m)
     seen: NDArray[np.bool_] = on_ray & valid & (rng >= scan.min_range_m) & ~out_of_range
+    if margin_m > 0.0 and seen.any():
+        pts = sensor.inverse().apply(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
+        bearing = np.arctan2(pts[:, 1], pts[:, 0])
+        spread = np.arcsin(np.clip(margin_m / np.maximum(rng, 1e-9), 0.0, 1.0))
+        b = scan.bearings_rad
+        inside = (bearing - spread >= min(b[0], b[-1])) & (bearing + spread <= max(b[0], b[-1]))
+        seen &= inside | ~(r - rng > margin_m)  # by the edge: superseded only by a return at or before it
     return seen
