@@ -22,6 +22,11 @@ from sitl.depth_sensor import cast_rays
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
 
 
+def polar(bearing: float, range_m: float) -> list[float]:
+    """The point at that bearing and range from the sensor."""
+    return [range_m * math.cos(bearing), range_m * math.sin(bearing)]
+
+
 def scan(ranges, bearings=BEARINGS, max_range=5.0):
     return DepthScan(0.0, bearings, np.asarray(ranges, dtype=float), max_range)
 
@@ -252,19 +257,16 @@ def test_in_view_is_what_the_scan_has_its_own_say_about():
     ranges[np.abs(bearings) < 0.02] = np.nan  # and an invalid reading straight ahead
     scan = DepthScan(0.0, bearings, ranges, 5.0, min_range_m=0.3)
 
-    def at(bearing: float, range_m: float) -> list[float]:
-        return [range_m * math.cos(bearing), range_m * math.sin(bearing)]
-
     points = np.array(
         [
-            at(-0.3, 1.0),  # seen through
-            at(-0.3, 2.0),  # the surface
-            at(-0.3, 3.0),  # hidden behind it
-            at(0.7, 4.0),  # seen through, no return
-            at(0.7, 6.0),  # past the maximum range, no return: not seen
-            at(-0.3, 0.2),  # nearer than the minimum range
-            at(0.0, 1.0),  # on the invalid ray
-            at(1.2, 1.0),  # outside the field of view
+            polar(-0.3, 1.0),  # seen through
+            polar(-0.3, 2.0),  # the surface
+            polar(-0.3, 3.0),  # hidden behind it
+            polar(0.7, 4.0),  # seen through, no return
+            polar(0.7, 6.0),  # past the maximum range, no return: not seen
+            polar(-0.3, 0.2),  # nearer than the minimum range
+            polar(0.0, 1.0),  # on the invalid ray
+            polar(1.2, 1.0),  # outside the field of view
         ]
     )
     sensor = Pose2(1.0, -2.0, 0.4)  # the same, placed in another frame
@@ -278,20 +280,16 @@ def test_a_remembered_return_by_the_field_of_views_edge_is_not_superseded_within
     remembered one. Seen through within ``margin_m`` of the edge, the scan does not have its
     say: forgotten there, the vehicle turned round the wall's end into it (apartment seed 4, in
     a variant)."""
-    bearings = np.linspace(-math.pi / 4, math.pi / 4, 64)
-    scan = DepthScan(0.0, bearings, np.full(64, 5.0), 5.0, min_range_m=0.1)  # nothing in view
-
-    def at(bearing: float, range_m: float) -> list[float]:
-        return [range_m * math.cos(bearing), range_m * math.sin(bearing)]
+    scan = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0, min_range_m=0.1)  # nothing in view
 
     edge = math.pi / 4
     points = np.array(
         [
-            at(-edge + math.radians(1.0), 0.55),  # 1 degree inside the edge, 0.55 m away: 1 cm in
-            at(edge - math.radians(1.0), 0.55),  # the same by the other edge
-            at(-edge + math.radians(1.0), 4.0),  # 1 degree inside, 4 m away: 7 cm in
-            at(-edge + math.radians(15.0), 0.55),  # well inside: 14 cm in
-            at(0.0, 2.0),  # the middle
+            polar(-edge + math.radians(1.0), 0.55),  # 1 degree inside the edge, 0.55 m away: 1 cm in
+            polar(edge - math.radians(1.0), 0.55),  # the same by the other edge
+            polar(-edge + math.radians(1.0), 4.0),  # 1 degree inside, 4 m away: 7 cm in
+            polar(-edge + math.radians(15.0), 0.55),  # well inside: 14 cm in
+            polar(0.0, 2.0),  # the middle
         ]
     )
     assert in_view(scan, Pose2.identity(), points).tolist() == [True] * 5  # no margin: all superseded
@@ -299,5 +297,5 @@ def test_a_remembered_return_by_the_field_of_views_edge_is_not_superseded_within
     assert got.tolist() == [False, False, False, True, True]
     # Where the ray by the edge returns at the point (or before it), the scan's own return
     # stands in for it: superseded, margin or not.
-    walled = DepthScan(0.0, bearings, np.full(64, 0.55), 5.0, min_range_m=0.1)
+    walled = DepthScan(0.0, BEARINGS, np.full(64, 0.55), 5.0, min_range_m=0.1)
     assert in_view(walled, Pose2.identity(), points[:2], margin_m=0.1).tolist() == [True, True]

@@ -344,9 +344,10 @@ def returns_xy(scan: DepthScan, no_return_margin_m: float) -> FloatArray:
 
 def _nearest_rays(
     scan: DepthScan, sensor: Pose2, points_xy: FloatArray
-) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.bool_]]:
-    """Each point's range from the sensor, the ray nearest its bearing, and whether that ray
-    passes through it (the bearing within half a ray's spacing, so not outside the field of view)."""
+) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.bool_], FloatArray]:
+    """Each point's range from the sensor, the ray nearest its bearing, whether that ray passes
+    through it (the bearing within half a ray's spacing, so not outside the field of view), and
+    the bearing itself."""
     pts = sensor.inverse().apply(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
     rng = np.hypot(pts[:, 0], pts[:, 1])
     bearing = np.arctan2(pts[:, 1], pts[:, 0])
@@ -354,7 +355,7 @@ def _nearest_rays(
     j = np.clip(np.searchsorted(b, bearing), 1, b.size - 1)
     j = np.where(np.abs(bearing - b[j - 1]) <= np.abs(bearing - b[j]), j - 1, j)
     on_ray = np.abs(bearing - b[j]) <= 0.5 * np.abs(np.gradient(b))[j]
-    return rng, j, on_ray
+    return rng, j, on_ray, bearing
 
 
 def _past_return_m(
@@ -362,7 +363,7 @@ def _past_return_m(
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """How far each point lies past the return of the ray through it (negative: in front of it),
     and whether there is such a ray that returned (:func:`has_return`; inside the field of view)."""
-    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
+    rng, j, on_ray, _ = _nearest_rays(scan, sensor, points_xy)
     returned: NDArray[np.bool_] = on_ray & has_return(scan, no_return_margin_m)[j]
     past: FloatArray = rng - scan.ranges_m[j]
     return past, returned
@@ -401,17 +402,15 @@ def in_view(scan: DepthScan, sensor: Pose2, points_xy: FloatArray, margin_m: flo
     a ``margin_m`` (how well a remembered point is known), one its ray sees through (returns
     more than that beyond it) but that lies within that margin of the field of view's edge: the
     wall's end it was seen on may lie just outside, where no ray passes."""
-    rng, j, on_ray = _nearest_rays(scan, sensor, points_xy)
+    rng, j, on_ray, bearing = _nearest_rays(scan, sensor, points_xy)
     r = scan.ranges_m[j]
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(r) & (r >= scan.min_range_m) | np.isposinf(r)
         out_of_range = (rng > scan.max_range_m) & ~(r < scan.max_range_m)
     seen: NDArray[np.bool_] = on_ray & valid & (rng >= scan.min_range_m) & ~out_of_range
     if margin_m > 0.0 and seen.any():
-        pts = sensor.inverse().apply(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
-        bearing = np.arctan2(pts[:, 1], pts[:, 0])
         spread = np.arcsin(np.clip(margin_m / np.maximum(rng, 1e-9), 0.0, 1.0))
-        b = scan.bearings_rad
-        inside = (bearing - spread >= min(b[0], b[-1])) & (bearing + spread <= max(b[0], b[-1]))
+        b = scan.bearings_rad  # ascending, as _nearest_rays takes them
+        inside = (bearing - spread >= b[0]) & (bearing + spread <= b[-1])
         seen &= inside | ~(r - rng > margin_m)  # by the edge: superseded only by a return at or before it
     return seen
