@@ -110,6 +110,7 @@ class GridPolicy:
             "frontiers_closed_on_surface": 0,
             "frontiers_closed_as_slivers": 0,
             "steps_looking_at_remembered": 0,
+            "stalls": 0,
         }
 
 

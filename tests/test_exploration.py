@@ -679,3 +679,27 @@ def test_a_keyframe_keeps_the_way_flown_from_its_parent():
     assert ahead is not None and np.allclose(ahead, way)
     back = ex.map.flown_between(child, parent)
     assert back is not None and np.allclose(back, np.array(way[::-1]) - (-0.5, 3.5))
+
+
+@pytest.mark.parametrize("stall_s", [5.0, 0.0])
+def test_a_vehicle_standing_still_on_its_way_takes_its_goal_as_blocked(stall_s):
+    """Something the plan does not see can hold the vehicle on a clear way: the setpoint's lead,
+    held by a remembered return beside a leg, turned the vehicle to look at it, off the leg; the
+    planner turned it back, and it rocked so until the route timed out (30 s). Standing within
+    ``stall_radius_m`` for ``stall_s`` on its way, its goal counts as blocked and cools down,
+    as when the sensor sees it so (0: off, and the goal waits for its deadline)."""
+    ex = explorer(stall_s=stall_s)
+    here = Pose2(0.0, 0.0, 0.0)  # the vehicle never moves
+    goals = []
+    for i in range(70):  # 7 s, within the goal's own time budget (at least 10 s)
+        t = 0.1 * i
+        ex.step(Odometry(t, here), DepthScan(t, BEARINGS, np.full(64, 5.0), 5.0))
+        goals.append(None if ex.planner.goal is None else ex.planner.goal.key)
+    first = goals[0]
+    assert first is not None
+    if stall_s:
+        assert ex.stalls == 1 and ex.map_counts()["stalls"] == 1
+        assert goals[: int(stall_s / 0.1)] == [first] * int(stall_s / 0.1)  # kept until then
+        assert first in ex.planner._cooling and first not in goals[int(stall_s / 0.1) + 1 :]
+    else:
+        assert ex.stalls == 0 and goals == [first] * len(goals)

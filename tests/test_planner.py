@@ -765,3 +765,36 @@ def test_a_frontier_facing_only_a_sliver_is_closed_when_weighed_not_flown_to():
         goals.append(planner.plan(m, a_id, Pose2(0.0, 0.0, 0.0), 0.1).goal)
         assert a.kinds[2] == (VertexKind.FREE if gap < 0.4 else VertexKind.FRONTIER)
     assert goals == [None, FrontierKey(0, 2)]
+
+
+@pytest.mark.parametrize("stalled", [False, True])
+def test_a_route_leg_the_vehicle_stood_still_on_is_taken_as_blocked(stalled):
+    """The straight leg from B back to A is clear to the newest scan, but the vehicle stood still
+    on it (``note_stall``: held by something the plan does not see): that plan takes the leg as
+    blocked and flies back the way the vehicle came, as when the sensor sees it so. Only that
+    plan: the note is not carried to the next."""
+    world_a, world_b = Pose2(0.0, 0.0, math.pi), Pose2(0.0, 3.0, 0.0)
+    flown_world = np.array([[2.0, 0.5], [2.0, 1.5], [2.0, 2.5]])
+    m = LocalMap()
+    open_scan = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+    a = m.add_keyframe(0.0, world_a, scan_to_polygon(open_scan))
+    way = world_a.inverse().apply(flown_world)
+    b = m.add_keyframe(1.0, world_b, scan_to_polygon(open_scan), (a.keyframe_id, world_a.between(world_b)), way)
+    b.kinds[b.kinds == VertexKind.FRONTIER] = VertexKind.FREE
+    b.version += 1
+    planner = FrontierPlanner()
+    planner.route = _Route([a.keyframe_id], a.keyframe_id)
+    vehicle = Pose2(0.0, 0.0, -math.pi / 2)  # at B, facing A
+    if stalled:
+        planner.note_stall()
+    decision = planner.plan(m, b.keyframe_id, vehicle, 100.0, live_obstacles_xy=np.zeros((0, 2)))
+    assert decision.mode is Mode.BACKTRACKING
+    a_in_b = world_b.inverse().apply(np.array([[0.0, 0.0]]))[0]
+    if stalled:
+        back = world_b.inverse().apply(flown_world[::-1])
+        assert planner._leg is not None and planner._leg.flown
+        assert np.allclose(planner._leg.points[:-1], back)
+    else:
+        assert planner._leg is not None and not planner._leg.flown
+        assert np.allclose(planner._leg.points[-1], a_in_b)
+    assert not planner._stalled and not planner._stall_noted  # used up by this plan

@@ -84,6 +84,13 @@ class ExplorerParams:
     # outside, where no ray passes: forgotten, the vehicle turned round a wall's end into it
     # (apartment seed 4, in a variant). Returns the scan sees as surface go as before.
     obstacle_memory_margin_m: float = 0.1
+    # A vehicle on its way (a goal not reached, a route) that stays within ``stall_radius_m`` for
+    # ``stall_s`` is held by something the plan does not see (the lead's remembered returns,
+    # say): its leg or goal counts as blocked, as when the sensor sees it so. The lead stopped
+    # the vehicle by a remembered return beside its leg; turned to look, it was off the leg, and
+    # turned back: it rocked between the two until the route timed out (30 s, a generated map).
+    stall_s: float = 8.0
+    stall_radius_m: float = 0.2
     lead: LeadParams = field(default_factory=LeadParams)  # how far setpoints may lead the vehicle
     # Loop closures of the companion's own, by matching each new view to old ones (for links
     # that bring none: MAVLink has no loop-closure message).
@@ -239,6 +246,8 @@ class Explorer:
         self._looked_around_rad = 0.0  # turned in place at the start so far (see look_around_rad)
         self._looked_around = self.params.look_around_rad <= 0.0
         self._look_from: tuple[float, Pose2] | None = None  # when and where it began (odometry frame)
+        self._still_since: tuple[float, Pose2] | None = None  # on its way, standing here since (see stall_s)
+        self.stalls = 0  # legs and goals taken as blocked because the vehicle stood still on them
 
     @property
     def mode(self) -> Mode:
@@ -294,6 +303,7 @@ class Explorer:
         if looking_around:
             decision = self._look_around(odom)
         else:
+            self._watch_stall(odom)
             half_fov = None if self._live is None else _half_fov_rad(self._live[2])
             decision = self.planner.plan(
                 self.map,
@@ -375,6 +385,7 @@ class Explorer:
             "frontiers_closed_on_surface": self.planner.closed_on_surface,
             "frontiers_closed_as_slivers": self.map.slivers_closed,
             "steps_looking_at_remembered": self.looks_at_remembered,
+            "stalls": self.stalls,
         }
 
     def add_loop_closure(self, closure: LoopClosure) -> None:
@@ -523,6 +534,19 @@ class Explorer:
             vx, vy = (odom.pose.x_m - before.x_m) / dt, (odom.pose.y_m - before.y_m) / dt
         c, s = math.cos(self.anchor.yaw_rad), math.sin(self.anchor.yaw_rad)
         return (c * vx + s * vy, -s * vx + c * vy)
+
+    def _watch_stall(self, odom: Odometry) -> None:
+        """Tell the planner when the vehicle has stood still on its way for ``stall_s``."""
+        if not self.planner.pursuing or self.params.stall_s <= 0.0:
+            self._still_since = None
+            return
+        since = self._still_since
+        if since is None or since[1].distance_to(odom.pose) > self.params.stall_radius_m:
+            self._still_since = (odom.stamp_s, odom.pose)
+        elif odom.stamp_s - since[0] >= self.params.stall_s:
+            self.planner.note_stall()
+            self.stalls += 1
+            self._still_since = (odom.stamp_s, odom.pose)
 
     def _within_lead(self, sp: Setpoint, pose: Pose2, velocity_in_frame: tuple[float, float]) -> Setpoint:
         """The setpoint limited to the lead (see :mod:`setpoint_lead`), all in the odometry frame:

@@ -239,6 +239,8 @@ class FrontierPlanner:
     _leg: _Leg | None = None
     _replans: _Replans | None = None
     _tried_in_vain: int | None = None  # keyframe whose frontiers were last tried from it in vain
+    _stall_noted: bool = False  # see note_stall
+    _stalled: bool = False  # this plan's: the first leg or goal it checks is blocked
     _arrived_at: int | None = None  # route keyframe last arrived at (its origin, or its leg's end)
     _cooling: dict[FrontierKey, float] = field(default_factory=dict)  # dropped goal -> until when
     # goal -> where it was last dropped as blocked (keyframe, vehicle position in its frame)
@@ -281,6 +283,7 @@ class FrontierPlanner:
         depth_m)`` says which points the newest scan sees hidden more than that behind a surface.
         """
         view = local_map.view(frame_id)
+        self._stalled, self._stall_noted = self._stall_noted, False  # for this plan's leg or goal only
         self._turn_first_rad = self.params.turn_first_rad
         if half_fov_rad is not None:
             inside = half_fov_rad - self.params.fov_edge_margin_rad
@@ -316,6 +319,16 @@ class FrontierPlanner:
             return self._fly(vehicle, best.aim_xy, best.look_rad, Mode.EXPLORING, best.key)
 
         return self._backtrack(local_map, frame_id, view, vehicle, here, required, stamp_s)
+
+    @property
+    def pursuing(self) -> bool:
+        """On its way: a goal not reached yet, or a route back."""
+        return (self.goal is not None and self.goal.arrived_s is None) or self.route is not None
+
+    def note_stall(self) -> None:
+        """The vehicle has stood still on its way (see ``ExplorerParams.stall_s``): the next
+        plan takes the leg or goal it is on as blocked, as when the sensor sees it so."""
+        self._stall_noted = True
 
     # -- the committed goal ---------------------------------------------------------------------
 
@@ -398,7 +411,10 @@ class FrontierPlanner:
             # Settle where it arrived: a new keyframe may re-express the goal a little elsewhere
             # (another chain of the graph), and chasing that would creep towards walls.
             return Decision(Mode.EXPLORING, Target(vehicle.x_m, vehicle.y_m, look), goal.key)
-        if dist > self.params.goal_reached_m and not self._still_accessible(view, pose, here, goal, goal_xy, required):
+        stalled, self._stalled = self._stalled, False
+        if stalled or (
+            dist > self.params.goal_reached_m and not self._still_accessible(view, pose, here, goal, goal_xy, required)
+        ):
             self._drop(local_map, frame_id, here, goal.key, stamp_s)
             return None
         return self._fly(vehicle, goal_xy, look, Mode.EXPLORING, goal.key)
@@ -475,7 +491,11 @@ class FrontierPlanner:
 
     def _leg_blocked(self, vehicle: Pose2, here: FloatArray, wp: FloatArray, required: float) -> bool:
         """The newest scan sees the leg to ``wp`` blocked (judged once facing it: the sensor looks
-        ahead). A leg through free space needs the body radius clear, not the whole margin."""
+        ahead), or the vehicle stood still on it (:meth:`note_stall`). A leg through free space
+        needs the body radius clear, not the whole margin."""
+        if self._stalled:
+            self._stalled = False
+            return True
         travel = float(np.arctan2(*(wp - here)[::-1]))
         facing = abs(wrap_angle(travel - vehicle.yaw_rad)) <= self._turn_first_rad
         if not (facing and self._live.shape[0]):
