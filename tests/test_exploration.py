@@ -703,3 +703,36 @@ def test_a_vehicle_standing_still_on_its_way_takes_its_goal_as_blocked(stall_s):
         assert first in ex.planner._cooling and first not in goals[int(stall_s / 0.1) + 1 :]
     else:
         assert ex.stalls == 0 and goals == [first] * len(goals)
+
+
+def test_a_vehicle_rocking_between_a_remembered_return_and_its_way_goes_on_facing_the_return():
+    """Held by a remembered return beside its way, the setpoint faces the return; that turns the
+    vehicle off its way by more than the planner lets it fly without turning first, so the next
+    step turns it back in place, where the return holds it again: the commanded yaw alternated
+    every step and the vehicle rocked on one spot for up to 60 s (campus seed 1). After
+    ``rock_turns`` turns back it goes on facing the return, until the sensor takes it in."""
+    ex = explorer()
+    lead = ex.params.lead
+    here = Pose2(0.0, 0.0, 0.0)
+    return_xy = np.array([[0.3, -0.25]])  # 0.25 m beside the way east, just ahead: in the lead's berth
+    ex._obstacles_xy = return_xy  # remembered only: the explorer has no scan yet
+    faces = math.atan2(-0.25, 0.3)
+    ahead, turn_back = Setpoint(1.0, 0.0, 0.0), Setpoint(0.0, 0.0, 0.0)  # the planner's two answers
+    yaws = []
+    for i in range(10):
+        sp = ahead if i % 2 == 0 else turn_back
+        out = ex._within_lead(sp, here, (0.0, 0.0), 0.1 * i)
+        assert math.hypot(out.x_m, out.y_m) < 0.05  # held where it is either way
+        yaws.append(out.yaw_rad)
+    assert all(math.isclose(y, faces) for y in yaws[0::2])  # held: it faces the return
+    turns = [y for y in yaws[1::2]]
+    first_held = lead.rock_turns - 1  # the turns back before that are the planner's
+    assert all(y == 0.0 for y in turns[:first_held])
+    assert all(math.isclose(y, faces) for y in turns[first_held:])
+    ex._obstacles_xy = np.zeros((0, 2))  # the sensor took it in: forgotten
+    assert ex._within_lead(turn_back, here, (0.0, 0.0), 1.0).yaw_rad == 0.0
+    # One look and then turns in place (no rocking) leave the planner's yaw alone.
+    ex = explorer()
+    ex._obstacles_xy = return_xy
+    ex._within_lead(ahead, here, (0.0, 0.0), 0.0)
+    assert [ex._within_lead(turn_back, here, (0.0, 0.0), 0.1 * i).yaw_rad for i in range(1, 6)] == [0.0] * 5

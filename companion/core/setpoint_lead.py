@@ -54,6 +54,14 @@ class LeadParams:
     # newest scan alone would leave it at least ``look_lead_m``: then it looks at what holds it.
     hold_m: float = 0.05
     look_lead_m: float = 0.2
+    # Facing one, the vehicle may turn off its way by more than the planner lets it fly without
+    # turning first: the next step turns it back, where the return holds it again, and it rocks
+    # on one spot (commanded yaw alternating every step). After ``rock_turns`` such turns back
+    # within ``rock_window_s`` it goes on facing the return until the sensor takes it in (or it
+    # is otherwise forgotten), for at most ``look_hold_s``.
+    rock_turns: int = 3
+    rock_window_s: float = 1.5
+    look_hold_s: float = 2.0
     # Moving, the vehicle does not fly the setpoint's straight line: its momentum carries it on
     # while it turns. The way it would take, were the setpoint to stay put, is predicted with an
     # autopilot that coasts ``model_delay_s`` (the setpoint's trip and a control cycle), then
