@@ -596,12 +596,12 @@ def test_held_by_a_remembered_wall_alone_the_vehicle_turns_to_look_at_it():
     east = Pose2(0.0, 0.0, -0.3)
     ex.step(Odometry(1.0, east), DepthScan(1.0, BEARINGS, np.full(64, 5.0), 5.0))
     assert ex.obstacles_xy.shape[0] == 64  # the north wall, remembered
-    sp = ex._within_lead(Setpoint(0.2, 3.0, -0.3), east, (0.0, 0.0))
+    sp = ex._within_lead(Setpoint(0.2, 3.0, -0.3), east, (0.0, 0.0), 1.0)
     assert math.hypot(sp.x_m, sp.y_m) < 0.05  # held
     assert math.pi / 4 <= sp.yaw_rad <= 3 * math.pi / 4  # facing the wall
     assert ex.looks_at_remembered == 1
     # Going east, away from it, the wall holds nothing: the planner's yaw stands.
-    free = ex._within_lead(Setpoint(3.0, -0.5, -0.3), east, (0.0, 0.0))
+    free = ex._within_lead(Setpoint(3.0, -0.5, -0.3), east, (0.0, 0.0), 1.1)
     assert math.hypot(free.x_m, free.y_m) > 1.0 and free.yaw_rad == -0.3
 
 
