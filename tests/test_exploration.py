@@ -725,7 +725,7 @@ def test_a_vehicle_rocking_between_a_remembered_return_and_its_way_goes_on_facin
         assert math.hypot(out.x_m, out.y_m) < 0.05  # held where it is either way
         yaws.append(out.yaw_rad)
     assert all(math.isclose(y, faces) for y in yaws[0::2])  # held: it faces the return
-    turns = [y for y in yaws[1::2]]
+    turns = yaws[1::2]
     first_held = lead.rock_turns - 1  # the turns back before that are the planner's
     assert all(y == 0.0 for y in turns[:first_held])
     assert all(math.isclose(y, faces) for y in turns[first_held:])

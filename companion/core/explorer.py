@@ -34,7 +34,7 @@ from companion.core.loop_closing import FoundClosure, LoopClosingParams, ViewMat
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
 from companion.core.odometry_matching import OdometryMatchingParams, match_odometry_edge
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
-from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
+from companion.core.setpoint_lead import LeadParams, LookHold, limit_lead_facing_memory
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,6 +89,7 @@ class ExplorerParams:
     # say): its leg or goal counts as blocked, as when the sensor sees it so. The lead stopped
     # the vehicle by a remembered return beside its leg; turned to look, it was off the leg, and
     # turned back: it rocked between the two until the route timed out (30 s, a generated map).
+    # ``LeadParams.rock_turns`` now breaks that rocking; this is the backstop for what else holds it.
     stall_s: float = 8.0
     stall_radius_m: float = 0.2
     lead: LeadParams = field(default_factory=LeadParams)  # how far setpoints may lead the vehicle
@@ -248,9 +249,7 @@ class Explorer:
         self._look_from: tuple[float, Pose2] | None = None  # when and where it began (odometry frame)
         self._still_since: tuple[float, Pose2] | None = None  # on its way, standing here since (see stall_s)
         self.stalls = 0  # legs and goals taken as blocked because the vehicle stood still on them
-        self._looked_at: tuple[float, FloatArray] | None = None  # a remembered return last faced: when, where
-        self._turns_back: list[float] = []  # when the setpoint turned in place away from it, right after facing it
-        self._was_looking = False  # the last step's setpoint faced a remembered return
+        self._look_hold = LookHold(self.params.lead)  # facing a remembered return through rocking
 
     @property
     def mode(self) -> Mode:
@@ -558,28 +557,16 @@ class Explorer:
         the newest scan's returns, and the earlier ones remembered. Held by remembered returns
         alone, the vehicle faces the one in its way, so the sensor sees whether it is still there
         (and goes on facing it once it has rocked between it and its way: ``LeadParams.rock_turns``)."""
-        lead = self.params.lead
         returns = self._obstacles_xy
         split = returns.shape[0] - self._recent.newest_count()
         newest, remembered = returns[split:], returns[:split]
         vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
         radius = self.params.planner.body_radius_m
-        limited, blocker = limit_lead_facing_memory(sp, pose, (float(vx), float(vy)), newest, radius, lead, remembered)
+        limited, blocker = limit_lead_facing_memory(
+            sp, pose, (float(vx), float(vy)), newest, radius, self.params.lead, remembered
+        )
         in_place = math.hypot(limited.x_m - pose.x_m, limited.y_m - pose.y_m) <= self.params.planner.goal_reached_m
-        looked = self._looked_at
-        if blocker is None and looked is not None:
-            gone = remembered.shape[0] == 0 or float(np.min(np.hypot(*(remembered - looked[1]).T))) > 1e-9
-            if gone or not in_place or stamp_s - looked[0] > lead.look_hold_s:
-                self._looked_at, self._turns_back = None, []
-            else:
-                recent = [t for t in self._turns_back if stamp_s - t <= lead.rock_window_s]
-                self._turns_back = [*recent, stamp_s] if self._was_looking else recent
-                if len(self._turns_back) >= lead.rock_turns:  # rocking: face the return still
-                    yaw = math.atan2(float(looked[1][1]) - pose.y_m, float(looked[1][0]) - pose.x_m)
-                    limited, blocker = Setpoint(limited.x_m, limited.y_m, yaw), looked[1]
-        elif blocker is not None and (looked is None or len(self._turns_back) < lead.rock_turns):
-            self._looked_at = (stamp_s, blocker)
-        self._was_looking = blocker is not None
+        limited, blocker = self._look_hold.apply(limited, blocker, pose, remembered, in_place, stamp_s)
         if blocker is not None:
             self.looks_at_remembered += 1
         return limited

@@ -123,6 +123,46 @@ def limit_lead_facing_memory(
     return Setpoint(limited.x_m, limited.y_m, yaw), blocker
 
 
+class LookHold:
+    """Keeps the setpoint facing a remembered return once the vehicle rocks between it and its
+    way (see ``LeadParams.rock_turns``): what :func:`limit_lead_facing_memory` does step by
+    step, remembered across steps."""
+
+    def __init__(self, params: LeadParams) -> None:
+        self.params = params
+        self._looked_at: tuple[float, FloatArray] | None = None  # the return last faced: when, where
+        self._turns_back: list[float] = []  # turns in place away from it, each right after facing it
+        self._was_looking = False  # the last step's setpoint faced a remembered return
+
+    def apply(
+        self,
+        limited: Setpoint,
+        blocker: FloatArray | None,
+        pose: Pose2,
+        remembered_xy: FloatArray,
+        in_place: bool,
+        stamp_s: float,
+    ) -> tuple[Setpoint, FloatArray | None]:
+        """This step's setpoint and the remembered return it faces, from
+        :func:`limit_lead_facing_memory`'s (``in_place``: the setpoint stays where the vehicle is)."""
+        p, looked = self.params, self._looked_at
+        if blocker is None and looked is not None:
+            near = np.hypot(*(remembered_xy - looked[1]).T) if remembered_xy.shape[0] else np.zeros(0)
+            gone = near.size == 0 or float(np.min(near)) > 1e-9
+            if gone or not in_place or stamp_s - looked[0] > p.look_hold_s:
+                self._looked_at, self._turns_back = None, []
+            else:
+                recent = [t for t in self._turns_back if stamp_s - t <= p.rock_window_s]
+                self._turns_back = [*recent, stamp_s] if self._was_looking else recent
+                if len(self._turns_back) >= p.rock_turns:  # rocking: face the return still
+                    yaw = math.atan2(float(looked[1][1]) - pose.y_m, float(looked[1][0]) - pose.x_m)
+                    limited, blocker = Setpoint(limited.x_m, limited.y_m, yaw), looked[1]
+        elif blocker is not None and (looked is None or len(self._turns_back) < p.rock_turns):
+            self._looked_at = (stamp_s, blocker)
+        self._was_looking = blocker is not None
+        return limited, blocker
+
+
 def _within(setpoint: Setpoint, pose: Pose2, lead_m: float) -> Setpoint:
     """The setpoint moved along its line from the vehicle to at most ``lead_m`` away (yaw kept)."""
     dx, dy = setpoint.x_m - pose.x_m, setpoint.y_m - pose.y_m
