@@ -306,18 +306,19 @@ class Reach:
         a wall than the clearance is not reached, unless ``snap``: then the path ends at the
         nearest free cell within ``snap_m`` instead (e.g. a keyframe taken close to a wall)."""
         g = self.grid
-        reached = self.steps != _UNREACHED
+        ny, nx = self.steps.shape
         gi, gj = (int(v) for v in g._cells(np.asarray(goal_xy))[0])
         if snap:
-            goal_cell = g._snap(goal_xy, reached)
+            goal_cell = g._snap(goal_xy, self.steps != _UNREACHED)
         else:
-            inside = 0 <= gi < reached.shape[0] and 0 <= gj < reached.shape[1]
-            goal_cell = (gi, gj) if inside and reached[gi, gj] else None
+            # One cell to look at: the whole grid's reached mask cost more than the rest of a
+            # failed call, and a step may ask for a few hundred goals.
+            inside = 0 <= gi < ny and 0 <= gj < nx
+            goal_cell = (gi, gj) if inside and self.steps[gi, gj] != _UNREACHED else None
         if goal_cell is None:
             return None
         cells = [goal_cell]
         i, j = goal_cell
-        ny, nx = self.steps.shape
         while self.steps[i, j] > 0:
             here = self.steps[i, j]
             best: tuple[int, int] | None = None
