@@ -800,14 +800,12 @@ def test_a_route_leg_the_vehicle_stood_still_on_is_taken_as_blocked(stalled):
     assert not planner._stalled and not planner._stall_noted  # used up by this plan
 
 
-@pytest.mark.parametrize("straight_checked", [2, 200])
-def test_a_frontier_ranked_below_those_checked_for_free_space_paths_is_still_checked_for_a_straight_one(
-    straight_checked,
-):
+@pytest.mark.parametrize("checked", [2, 200])
+def test_a_frontier_ranked_low_by_heading_is_taken_straight_when_the_best_have_no_path(checked):
     """A wall 2 m ahead with a gap too narrow to fly: the frontiers seen through it rank best
     by heading, and none has a path. A frontier off to the side ranks lower and has a straight
-    path: the first choice takes it when it is among those checked for a straight path, instead
-    of leaving the choice to a route back (corridor seed 6: at the mouth, the corners' goals
+    path: the first choice takes it when it is among the candidates checked, instead of leaving
+    the choice to a route back (corridor seed 6: at the mouth, the corners' goals
     ranked 25th and lower, and the vehicle went down the corridor and came back for them)."""
     ranges = 2.0 / np.cos(BEARINGS)  # a wall across the way, 2 m ahead
     ranges[(BEARINGS > 0.25) & (BEARINGS < 0.40)] = 5.0  # seen through a 0.3 m gap
@@ -819,13 +817,13 @@ def test_a_frontier_ranked_below_those_checked_for_free_space_paths_is_still_che
     m = LocalMap()
     kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), polygon)
     m.close_frontiers(kf.keyframe_id, np.flatnonzero(np.hypot(*polygon.vertices_xy.T) < 3.0))  # the jambs
-    params = PlannerParams(max_candidates_checked=2, straight_candidates_checked=straight_checked)
+    params = PlannerParams(max_candidates_checked=checked)
     planner = FrontierPlanner(params)
     vehicle = Pose2(0.0, 0.0, 0.0)
     view = m.view(kf.keyframe_id)
     here = np.zeros(2)
     chosen = planner._select_local(m, kf.keyframe_id, view, vehicle, here, planner.params.clearance_m)
-    if straight_checked == 2:
+    if checked == 2:
         assert chosen is None  # the two best lie through the gap: no straight path, no free-space one
     else:
         assert chosen is not None and chosen.path is None  # straight

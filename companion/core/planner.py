@@ -51,14 +51,12 @@ class PlannerParams:
     clearance_margin_m: float = 0.15
     standoff_m: float = 1.0
     min_frontier_size_m: float = 0.3
-    # The best this many candidates by score are checked for a path through free space when
-    # none of the best ``straight_candidates_checked`` has a straight path; a route back only
-    # when none has either. 48 straight (24 before session 43): at a corridor's mouth or a door
-    # the 24 best by heading often all lie past a jamb, and the planner flew a free-space path
-    # or a route back while a frontier beside it, ranked lower, had a straight path. Free-space
-    # paths stay at 24: each costs a grid search, and the step's p99 rose with 48.
-    max_candidates_checked: int = 24
-    straight_candidates_checked: int = 48
+    # The best this many candidates by score are checked for a straight path, then for a path
+    # through free space; a route back only when none has either. 48 (24 before session 43): at
+    # a corridor's mouth or a door the 24 best by heading often all lay past a jamb, and the
+    # planner flew a free-space path or a route back while a frontier beside it, ranked lower,
+    # had a straight path. Seeds 1-10: -2.0 % time; 96 was no better (docs/benchmarks.md).
+    max_candidates_checked: int = 48
     # A goal's score: its change of heading plus this per metre to it (rapid selection's "least
     # change of heading", with distance as the tie-break that keeps the tour short). 0.2 in
     # session 23 (0.08 before): on 21 maps it flew shorter paths and ended sooner.
@@ -738,8 +736,7 @@ class FrontierPlanner:
     ) -> _Candidate | None:
         dense = only_keyframe is not None
         limit = self.params.max_candidates_checked * (8 if dense else 1)
-        straight = limit if dense else max(limit, self.params.straight_candidates_checked)
-        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense, straight)
+        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense, limit)
         if candidates:
             # The best candidate still open once views along the graph are checked, with a clear
             # straight path; the graph is checked only for those the clearance tests pass.
@@ -768,7 +765,7 @@ class FrontierPlanner:
         for clearance in clearances:
             eased = clearance < self.params.clearance_m  # its paths may pass returns too close
             reach: Reach | None = None
-            for c in candidates[:limit]:
+            for c in candidates:
                 if not self._open_through_graph(local_map, c.key):  # asked again, it is cached
                     continue
                 if reach is None:
