@@ -805,8 +805,8 @@ def test_a_frontier_ranked_low_by_heading_is_taken_straight_when_the_best_have_n
     """A wall 2 m ahead with a gap too narrow to fly: the frontiers seen through it rank best
     by heading, and none has a path. A frontier off to the side ranks lower and has a straight
     path: the first choice takes it when it is among the candidates checked, instead of leaving
-    the choice to a route back (corridor seed 6: at the mouth, the corners' goals
-    ranked 25th and lower, and the vehicle went down the corridor and came back for them)."""
+    the choice to a route back (corridor seed 6: at the mouth, the corners' goals ranked 25th
+    and lower, and the vehicle went down the corridor and came back for them)."""
     ranges = 2.0 / np.cos(BEARINGS)  # a wall across the way, 2 m ahead
     ranges[(BEARINGS > 0.25) & (BEARINGS < 0.40)] = 5.0  # seen through a 0.3 m gap
     ranges[BEARINGS < -0.45] = 5.0  # the wall ends on the right: open beyond
