@@ -12,6 +12,7 @@ from pathlib import Path
 from types import FrameType
 
 from sitl.errors import SitlError
+from sitl.map_generator import MapGenParams
 from sitl.world import World, load_world
 
 
@@ -60,15 +61,30 @@ def _parser() -> argparse.ArgumentParser:
     gen.add_argument("--seed", type=int, default=1, help="the same seed gives the same map")
     gen.add_argument("--width", type=float, default=24.0, help="building width in metres (default 24)")
     gen.add_argument("--height", type=float, default=16.0, help="building height in metres (default 16)")
+    d = MapGenParams()
+    gen.add_argument("--min-room", type=float, default=d.min_room_m, help="no room narrower, m (default %(default)g)")
+    gen.add_argument("--door-min", type=float, default=d.door_min_m, help="narrowest door, m (default %(default)g)")
+    gen.add_argument("--door-max", type=float, default=d.door_max_m, help="widest door, m (default %(default)g)")
+    gen.add_argument(
+        "--furniture", type=int, default=d.furniture_max_per_room, help="most pieces a room (default %(default)d)"
+    )
     gen.add_argument("--out", required=True, type=Path, help="GeoJSON file to write")
     return parser
 
 
 def _mapgen(args: argparse.Namespace) -> int:
-    from sitl.map_generator import MapGenParams, write_generated_map
+    from sitl.map_generator import write_generated_map
 
     try:
-        data = write_generated_map(args.out, args.seed, MapGenParams(width_m=args.width, height_m=args.height))
+        params = MapGenParams(
+            width_m=args.width,
+            height_m=args.height,
+            min_room_m=args.min_room,
+            door_min_m=args.door_min,
+            door_max_m=args.door_max,
+            furniture_max_per_room=args.furniture,
+        )
+        data = write_generated_map(args.out, args.seed, params)
     except (SitlError, OSError) as err:
         print(f"sitl: {err}", file=sys.stderr)
         return 2

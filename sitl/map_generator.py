@@ -59,6 +59,10 @@ def generate_map(seed: int, params: MapGenParams | None = None) -> dict[str, Any
         raise MapError("map generator: width and height must be finite")
     if p.width_m < p.min_room_m or p.height_m < p.min_room_m:
         raise MapError(f"map generator: the building must be at least {p.min_room_m:g} m each way (one room)")
+    if not (0.0 < p.door_min_m <= p.door_max_m):
+        raise MapError(f"map generator: doors must be 0 < min <= max wide, got {p.door_min_m:g}-{p.door_max_m:g} m")
+    if p.furniture_max_per_room < 0:
+        raise MapError(f"map generator: furniture per room must be >= 0, got {p.furniture_max_per_room}")
     if p.min_room_m < 2 * p.door_max_m:
         raise MapError("map generator: a room's wall must fit two doors")
     rng = np.random.default_rng(seed)

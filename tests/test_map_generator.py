@@ -1,5 +1,7 @@
 """Random building maps (sitl/map_generator.py): valid, reachable, deterministic, and explored."""
 
+import json
+
 import pytest
 import shapely
 
@@ -58,6 +60,24 @@ def test_sitl_mapgen_writes_a_map_the_simulator_loads(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
     assert sitl_main(["mapgen", "--seed", "4", "--width", "1", "--out", str(out)]) == 2
     assert "at least" in capsys.readouterr().err
+
+
+def test_sitl_mapgen_takes_the_rooms_doors_and_furniture_from_its_flags(tmp_path, capsys):
+    """The CLI builds the map the parameters give (the new-shape sets in docs/benchmarks.md are
+    written this way), and refuses doors that cannot be."""
+    out = tmp_path / "narrow.geojson"
+    flags = ["--seed", "410", "--width", "14", "--height", "12", "--min-room", "3", "--door-min", "0.9"]
+    assert sitl_main(["mapgen", *flags, "--door-max", "1.2", "--furniture", "3", "--out", str(out)]) == 0
+    params = MapGenParams(
+        width_m=14.0, height_m=12.0, min_room_m=3.0, door_min_m=0.9, door_max_m=1.2, furniture_max_per_room=3
+    )
+    assert json.loads(out.read_text()) == json.loads(json.dumps(generate_map(410, params)))
+    assert "doors 0.9-1.2 m" in capsys.readouterr().out
+    assert generate_map(410, params) != generate_map(410, MapGenParams(width_m=14.0, height_m=12.0, min_room_m=3.0))
+    assert sitl_main(["mapgen", "--door-min", "1.3", "--door-max", "1.2", "--out", str(out)]) == 2
+    assert "doors must be" in capsys.readouterr().err
+    assert sitl_main(["mapgen", "--furniture", "-1", "--out", str(out)]) == 2
+    assert "furniture" in capsys.readouterr().err
 
 
 def test_the_polygon_explorer_covers_a_generated_building_it_was_never_tuned_for(tmp_path):
