@@ -2,6 +2,7 @@
 
 import functools
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -342,6 +343,40 @@ def test_the_last_leg_of_a_path_through_free_space_is_judged_like_its_other_legs
             assert decision.goal != key and key in planner._cooling
 
 
+def test_a_goals_path_leg_grazing_a_return_goes_round_through_the_newest_scan():
+    """A leg of a goal's path through free space that the newest scan sees a few centimetres too
+    close to a return is flown round through the scan's free space, as a route's leg is, and the
+    goal is kept; only with no way round in the scan is it dropped."""
+    from companion.core.planner import _Candidate, _segment_clearance
+
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    open_idx = targetable_indices(kf, 0.3)
+    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    goal_xy = np.array([3.0, 0.0])
+    vehicle = Pose2(0.0, 0.0, 0.0)
+    jamb = np.array([[1.5, 0.27]])  # 0.27 m off the line: a leg keeps 0.30 m
+    for free_space, kept in ((shapely.box(-0.5, -1.5, 4.0, 0.2), True), (shapely.box(-0.5, -0.05, 0.2, 0.05), False)):
+        planner = FrontierPlanner()
+        candidate = _Candidate(key, goal_xy, 0.0, 0.0, path=goal_xy[None, :].copy())
+        planner._commit(m, kf.keyframe_id, candidate, np.zeros(2), 100.0)
+        decision = planner.plan(
+            m, kf.keyframe_id, vehicle, 100.1, live_obstacles_xy=jamb, live_view=lambda f=free_space: f
+        )
+        if kept:
+            assert planner.goal is not None and planner.goal.key == key and decision.goal == key
+            assert planner.goal.path is not None and planner.goal.path.shape[0] == 2
+            aim = planner.goal.path[0]
+            assert _segment_clearance(np.zeros(2), aim, jamb) >= 0.3  # a leg there is clear of the return
+            assert 3.0 - np.hypot(*(goal_xy - aim)) >= planner.params.sidestep_gain_m  # and nearer the goal
+            assert np.allclose(planner.goal.path[-1], goal_xy)  # then on to the goal
+            target = np.array([decision.target.x_m, decision.target.y_m])
+            heading = abs(decision.target.yaw_rad - math.atan2(aim[1], aim[0]))
+            assert np.allclose(target, aim) or (np.allclose(target, 0.0) and heading < 1e-9)  # flies, or turns first
+        else:
+            assert decision.goal != key and key in planner._cooling
+
+
 def test_after_a_loop_closure_each_step_walks_the_graph_for_a_bounded_number_of_keyframes():
     """After a loop closure every keyframe's check through the graph walks the whole graph
     afresh (1-2 ms each on a large map); a step does at most `fresh_graph_checks_per_step` of
@@ -587,6 +622,67 @@ def test_a_goal_off_the_heading_is_flown_to_while_its_path_stays_inside_the_sens
         assert moves_off != turns_first
         if turns_first:
             assert abs(target.yaw_rad) < 0.15  # it turns towards the goal ahead
+
+
+def test_on_a_goals_last_metre_the_vehicle_turns_to_look_as_it_flies_in():
+    """Within ``look_ahead_m`` of its goal, once facing the straight path to it (the sensor has
+    seen that path), the vehicle turns to the goal's look while it flies in, and goes on flying
+    in however far the turn takes its heading off the path. Farther out, or not yet facing the
+    path, it flies (or turns first) facing the way it goes; so it does throughout with
+    ``look_ahead_m`` 0."""
+
+    def committed(params: PlannerParams) -> tuple[LocalMap, int, FrontierPlanner, Callable[..., tuple[float, ...]]]:
+        m = LocalMap()
+        no_sides = PolygonParams(side_frontier_spacing_m=0.0)
+        scan = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+        kf_id = m.add_keyframe(0.0, Pose2(), scan_to_polygon(scan, no_sides)).keyframe_id
+        planner = FrontierPlanner(params)
+        planner.plan(m, kf_id, Pose2(), 0.0)
+        goal = planner.goal
+        assert goal is not None and math.hypot(*goal.local_xy) > 2.0
+        goal.look_local_rad = math.atan2(goal.local_xy[1], goal.local_xy[0]) + 1.2  # the vertex lies off the way in
+        stamp = [0.0]
+
+        def target(back_m: float, yaw_off_rad: float) -> tuple[float, ...]:
+            """Target x, y, yaw and look, travel (radians off them) for the vehicle ``back_m``
+            short of the goal on its path, heading ``yaw_off_rad`` off the way in."""
+            gx, gy = goal.local_xy
+            travel = math.atan2(gy, gx)
+            x, y = gx - back_m * math.cos(travel), gy - back_m * math.sin(travel)
+            stamp[0] += 0.1
+            d = planner.plan(m, kf_id, Pose2(x, y, travel + yaw_off_rad), stamp[0])
+            assert planner.goal is goal
+            t = d.target
+            off_look = abs(math.remainder(t.yaw_rad - goal.look_local_rad, math.tau))
+            off_travel = abs(math.remainder(t.yaw_rad - travel, math.tau))
+            return math.hypot(t.x_m - gx, t.y_m - gy), off_look, off_travel, float(d.want_keyframe)
+
+        return m, kf_id, planner, target
+
+    m, kf_id, planner, target = committed(PlannerParams())
+    to_goal, _, off_travel, _ = target(1.5, 0.0)  # farther out: facing the way it flies
+    assert to_goal == 0.0 and off_travel < 1e-9
+    to_goal, _, off_travel, _ = target(0.8, 1.0)  # close, but facing away: turns to the path first
+    assert to_goal > 0.7 and off_travel < 1e-9
+    to_goal, off_look, _, _ = target(0.8, 0.0)  # close, facing the path: flies in, turning to look
+    assert to_goal == 0.0 and off_look < 1e-9
+    to_goal, off_look, _, _ = target(0.5, 0.9)  # half turned, the path off the view: flies on
+    assert to_goal == 0.0 and off_look < 1e-9
+    # A view taken turning sees the vertex and closes it: the vehicle still flies in, for the
+    # view on arrival (it sees round the vertex); then the goal is done, with no settling.
+    goal = planner.goal
+    assert goal is not None
+    m.close_frontiers(kf_id, np.array([goal.key.index]))
+    to_goal, off_look, _, _ = target(0.35, 1.1)
+    assert to_goal == 0.0 and off_look < 1e-9
+    _, _, _, want_keyframe = target(0.0, 1.2)  # arrived, looking
+    assert want_keyframe
+    planner.plan(m, kf_id, Pose2(*goal.local_xy, goal.look_local_rad), 99.0)
+    assert planner.goal is not goal
+
+    _, _, _, target = committed(PlannerParams(look_ahead_m=0.0))
+    to_goal, _, off_travel, _ = target(0.8, 0.0)
+    assert to_goal == 0.0 and off_travel < 1e-9
 
 
 @pytest.mark.parametrize("flown", [True, False])
