@@ -186,10 +186,15 @@ def planner_params(with_loop_closures: bool) -> PlannerParams:
     closures by a tenth ended 2 of 18 runs without them short (six maps, seeds 1-3, perfect
     odometry; lshape 2 at its 900 s limit): flying back past a place, each new view there offered
     the same nearby frontier again, and the vehicle went to it and back for ever (0.12 and 0.15
-    ended 1 and 4 runs short; 0.08 none, and 12 % sooner than session 22 with the wider turn)."""
+    ended 1 and 4 runs short; 0.08 none, and 12 % sooner than session 22 with the wider turn).
+    Session 46's two changes, measured with closures only, stay off: the vehicle turns to look
+    on arriving at a goal (``look_ahead_m`` 0; on the last metre, the room run without closures,
+    seed 1, went to its 900 s limit where it had ended by itself at 594 s), and a goal path's
+    leg the scan sees grazing a return drops the goal (``sidestep_goal_legs``; flown round, the
+    loop run with the companion's own closures, seed 2, ended at coverage 0.947)."""
     if with_loop_closures:
         return PlannerParams()
-    return PlannerParams(distance_weight_rad_per_m=0.08)
+    return PlannerParams(distance_weight_rad_per_m=0.08, look_ahead_m=0.0, sidestep_goal_legs=False)
 
 
 LoopClosureSource = Literal["back_end", "scan_matching", "none"]

@@ -96,6 +96,8 @@ class PlannerParams:
     sidestep_step_deg: float = 10.0
     sidestep_lengths_m: tuple[float, ...] = (0.5, 0.8, 1.2)
     sidestep_gain_m: float = 0.3
+    # and so is a leg of a goal's free-space path (session 46), rather than drop the goal
+    sidestep_goal_legs: bool = True
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
     # A goal vertex the newest scan sees this far behind a surface, once arrived, was not looked
     # at (it lies beyond a wall: placed there by drift); closed as looked at, a room was lost.
@@ -424,7 +426,7 @@ class FrontierPlanner:
                 # as a route's leg does. Dropped, with a try counted each time, a cave's only
                 # passage had both its frontiers set aside in 13 s: `unreachable_frontiers_left`
                 # at coverage 0.55 (cave seed 7, in a variant, session 46).
-                aim = None if stalled else self._sidestep(here, pts[0], required)
+                aim = self._sidestep(here, pts[0], required) if self.params.sidestep_goal_legs and not stalled else None
                 if aim is not None:
                     goal.path = np.vstack((pose.inverse().apply(aim.reshape(1, 2)), goal.path))
                     return self._fly(vehicle, aim, look, Mode.EXPLORING, goal.key)
