@@ -11,7 +11,7 @@ import shapely
 from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
 from companion.core.frontiers import FrontierKey, targetable_indices
 from companion.core.geometry import Pose2
-from companion.core.local_map import LocalMap, MapParams
+from companion.core.local_map import Keyframe, LocalMap, MapParams
 from companion.core.messages import DepthScan
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, _Route
 
@@ -311,6 +311,15 @@ def test_a_route_leg_grazing_a_wall_goes_round_through_the_newest_scan():
     assert planner._sidestep(here, wp, required) is None
 
 
+def _open_view_with_a_frontier_ahead() -> tuple[LocalMap, Keyframe, FrontierKey]:
+    """One keyframe seeing 5 m every way in its field of view, and its frontier vertex straight ahead."""
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    open_idx = targetable_indices(kf, 0.3)
+    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    return m, kf, key
+
+
 def test_the_last_leg_of_a_path_through_free_space_is_judged_like_its_other_legs():
     """A goal has a path through the free-space grid because its straight line failed the strict
     test (the whole margin clear); that path's last leg is flown while the newest scan keeps it
@@ -319,10 +328,7 @@ def test_the_last_leg_of_a_path_through_free_space_is_judged_like_its_other_legs
     they were set aside). A leg the scan sees blocked still drops it."""
     from companion.core.planner import _Candidate
 
-    m = LocalMap()
-    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
-    open_idx = targetable_indices(kf, 0.3)
-    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    m, kf, key = _open_view_with_a_frontier_ahead()
     goal_xy = np.array([3.0, 0.0])
     vehicle = Pose2(0.0, 0.0, 0.0)
     for jamb_y, kept in ((0.35, True), (0.2, False)):
@@ -349,10 +355,7 @@ def test_a_goals_path_leg_grazing_a_return_goes_round_through_the_newest_scan():
     goal is kept; only with no way round in the scan is it dropped."""
     from companion.core.planner import _Candidate, _segment_clearance
 
-    m = LocalMap()
-    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
-    open_idx = targetable_indices(kf, 0.3)
-    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    m, kf, key = _open_view_with_a_frontier_ahead()
     goal_xy = np.array([3.0, 0.0])
     vehicle = Pose2(0.0, 0.0, 0.0)
     jamb = np.array([[1.5, 0.27]])  # 0.27 m off the line: a leg keeps 0.30 m
