@@ -647,8 +647,9 @@ def test_on_a_goals_last_metre_the_vehicle_turns_to_look_as_it_flies_in():
         stamp = [0.0]
 
         def target(back_m: float, yaw_off_rad: float) -> tuple[float, ...]:
-            """Target x, y, yaw and look, travel (radians off them) for the vehicle ``back_m``
-            short of the goal on its path, heading ``yaw_off_rad`` off the way in."""
+            """For the vehicle ``back_m`` short of the goal on its path, heading ``yaw_off_rad``
+            off the way in: the target's distance from the goal, its yaw's offset from the look
+            and from the way in (radians), and whether the plan asks for a keyframe (0 or 1)."""
             gx, gy = goal.local_xy
             travel = math.atan2(gy, gx)
             x, y = gx - back_m * math.cos(travel), gy - back_m * math.sin(travel)

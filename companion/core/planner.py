@@ -96,7 +96,8 @@ class PlannerParams:
     sidestep_step_deg: float = 10.0
     sidestep_lengths_m: tuple[float, ...] = (0.5, 0.8, 1.2)
     sidestep_gain_m: float = 0.3
-    # and so is a leg of a goal's free-space path (session 46), rather than drop the goal
+    # A leg of a goal's free-space path the scan sees so is flown round the same way rather than
+    # dropping the goal (session 46; off without loop closures, see companion.app.planner_params).
     sidestep_goal_legs: bool = True
     stale_radius_m: float = 1.0  # looked at and still open: set aside this close around it too
     # A goal vertex the newest scan sees this far behind a surface, once arrived, was not looked
