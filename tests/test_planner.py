@@ -608,6 +608,23 @@ def test_a_route_that_keeps_getting_shorter_is_progress_one_that_does_not_stalls
     assert not planner._route_stalled(_Route([5, 4], 4), 231.0)  # another target starts afresh
 
 
+def test_a_goal_taken_on_the_way_restarts_the_routes_watchdog():
+    """Flying a route, the vehicle found frontiers on the way and explored them for minutes. The
+    next route to the same target is a fresh one: its first step must not find it stalled and
+    count a failed try for the target's frontiers (three, and they were set aside)."""
+    from companion.core.planner import _Candidate
+
+    m, kf, key = _open_view_with_a_frontier_ahead()
+    planner = FrontierPlanner(PlannerParams(route_timeout_s=30.0))
+    assert not planner._route_stalled(_Route([9, 8, 7], 7), 100.0)
+    planner._commit(m, kf.keyframe_id, _Candidate(key, np.array([3.0, 0.0]), 0.0, 0.0), np.zeros(2), 110.0)
+    planner.goal = None  # explored until 140 s
+    again = _Route([9, 8, 7], 7)  # the same target, as far as before
+    assert not planner._route_stalled(again, 140.0)
+    assert not planner._route_stalled(again, 169.0)
+    assert planner._route_stalled(again, 171.0)  # no progress for 31 s of this route: stalled
+
+
 def test_a_goal_off_the_heading_is_flown_to_while_its_path_stays_inside_the_sensors_view():
     """The only frontier lies straight ahead along x and the vehicle faces 0.5 rad to its left.
     With a 90-degree camera the path stays inside the view (the turn-first limit is the half

@@ -537,6 +537,12 @@ class FrontierPlanner:
         return _segment_clearance(here, wp, self._live) < self._leg_floor(required)
 
     def _commit(self, local_map: LocalMap, frame_id: int, c: _Candidate, here: FloatArray, stamp_s: float) -> None:
+        # A goal taken ends the route (each caller drops it): a later route, to the same target
+        # too, starts its progress watchdog afresh. Kept, the watchdog counted the minutes spent
+        # exploring on the way as a stalled route, and the first step of the next route to that
+        # target failed its frontiers a third time: set aside, the space beyond them long seen
+        # (campus seed 4, in a variant, `unreachable_frontiers_left` at coverage 0.99998).
+        self._progress_target = None
         pose = local_map.pose_in(frame_id, c.key.keyframe_id).inverse()
         lx, ly = pose.apply_point(float(c.goal_xy[0]), float(c.goal_xy[1]))
         dist = float(np.hypot(*(c.goal_xy - here)))
