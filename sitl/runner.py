@@ -16,10 +16,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from companion.core.explorer import Explorer, ExplorerParams, RecentReturns
+from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.fov_polygon import PolygonParams, returns_xy
 from companion.core.geometry import Pose2
 from companion.core.messages import Setpoint
+from companion.core.obstacle_memory import RecentReturns
 from companion.core.planner import Mode, PlannerParams
 from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
 from sitl.coverage import CoverageGrid

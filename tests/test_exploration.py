@@ -13,9 +13,11 @@ from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.fov_polygon import PolygonParams, VertexKind
 from companion.core.geometry import Pose2, wrap_angle
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
+from companion.core.obstacle_memory import MemoryAlignParams
 from companion.core.planner import Mode, PlannerParams
 from companion.core.pose_graph import EdgeType
 from companion.core.setpoint_lead import LeadParams
+from sitl.depth_sensor import cast_rays
 from sitl.runner import run_exploration
 from sitl.simulation import SimParams
 from sitl.slam import SlamParams
@@ -584,6 +586,34 @@ def test_a_hovering_vehicle_keeps_the_wall_beside_it_and_each_return_once():
     north = np.isclose(held[:, 1], 0.6)
     assert north.sum() == 64  # the north wall, out of view for 30 s, still there
     assert held.shape[0] == 128  # and the eastern wall once, the newest scan's
+
+
+def test_a_remembered_wall_is_kept_where_the_newest_scan_shows_drift_has_moved_it():
+    """A box room: the vehicle sees the wall 0.6 m north, turns east, then flies 0.3 m east while
+    its odometry drifts (5 cm, 3 cm and 0.01 rad). The north wall is out of view; the east, north
+    and south walls the new scan shares with the last show the drift, and the remembered north
+    wall moves with them: where the vehicle's estimate truly has it, not where odometry put it."""
+    room = np.array([[[-2, 0.6], [4, 0.6]], [[4, 0.6], [4, -2]], [[4, -2], [-2, -2]], [[-2, -2], [-2, 0.6]]], float)
+
+    def scan(t: float, true: Pose2) -> DepthScan:
+        return DepthScan(
+            t, BEARINGS, cast_rays(np.array([true.x_m, true.y_m]), true.yaw_rad + BEARINGS, room, 5.0), 5.0
+        )
+
+    def north_wall_error_m(**params) -> float:
+        ex = explorer(**params)
+        north, east = Pose2(0.0, 0.0, math.pi / 2), Pose2(0.0, 0.0, 0.0)
+        ex.step(Odometry(0.0, north), scan(0.0, north))
+        ex.step(Odometry(0.1, east), scan(0.1, east))
+        true, estimate = Pose2(0.3, 0.0, 0.0), Pose2(0.35, -0.03, 0.01)
+        ex.step(Odometry(0.2, estimate), scan(0.2, true))
+        world = true.compose(estimate.inverse()).apply(ex.obstacles_xy)  # as the vehicle's estimate has them
+        first = world[world[:, 0] < 0.5]  # the first scan's: out of view since
+        assert first.shape[0] > 40
+        return float(np.max(np.abs(first[:, 1] - 0.6)))
+
+    assert north_wall_error_m() < 0.01
+    assert north_wall_error_m(obstacle_memory_align=MemoryAlignParams(enabled=False)) > 0.03
 
 
 def test_held_by_a_remembered_wall_alone_the_vehicle_turns_to_look_at_it():

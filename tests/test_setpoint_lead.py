@@ -168,6 +168,30 @@ def test_a_remembered_return_is_given_a_wider_berth_than_one_in_view():
     assert lead_of(held, pose) < 1.0 - 0.1  # short of the point, by the stop margin at least
 
 
+def test_a_remembered_return_that_may_have_drifted_is_given_a_berth_wider_by_its_sigmas():
+    """How far off each remembered return may lie by now (its sigma: the drift no alignment took
+    out) widens its berth by ``memory_sigmas`` of it: the line passing 0.43 m off a return is
+    clear of its plain 0.35 m, not of 0.35 + 2 x 0.05 m; one return's doubt holds no other."""
+    params = LeadParams(
+        max_lead_m=1.5,
+        contact_margin_m=0.05,
+        stop_margin_m=0.1,
+        speed_margin_s=0.0,
+        memory_margin_m=0.05,
+        memory_sigmas=2.0,
+    )
+    pose, sp = Pose2(0.0, 0.0, 0.0), Setpoint(3.0, 0.0, 0.0)
+    beside = np.array([[1.0, 0.43], [0.6, -0.43]])
+
+    def lead_m(sigmas: list[float]) -> float:
+        return lead_of(limit_lead(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, beside, np.array(sigmas)), pose)
+
+    assert lead_m([0.0, 0.0]) == pytest.approx(1.5)
+    assert lead_m([0.04, 0.0]) == pytest.approx(1.5)  # 0.43 clear of 0.43 - a hair
+    assert lead_m([0.05, 0.0]) < 1.0 - 0.1  # held short of the far one, by the stop margin
+    assert lead_m([0.0, 0.05]) < 0.6 - 0.1  # or of the near one
+
+
 def test_held_by_a_remembered_return_alone_the_vehicle_is_told_to_look_at_it():
     """A return out of view, 0.33 m off the line just ahead, holds the vehicle (the memory's
     wider berth), where the newest scan alone would let it go: that return is the one to look

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -23,7 +22,6 @@ from companion.core.fov_polygon import (
     FovPolygon,
     PolygonParams,
     behind_scanned_surface,
-    in_view,
     on_scanned_surface,
     returns_xy,
     scan_to_polygon,
@@ -32,6 +30,7 @@ from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
 from companion.core.loop_closing import FoundClosure, LoopClosingParams, ViewMatcher
 from companion.core.messages import DepthScan, LoopClosure, Odometry, Setpoint
+from companion.core.obstacle_memory import MemoryAlignParams, RecentReturns
 from companion.core.odometry_matching import OdometryMatchingParams, match_odometry_edge
 from companion.core.planner import Decision, FrontierPlanner, Mode, PlannerParams, Target
 from companion.core.setpoint_lead import LeadParams, LookHold, limit_lead_facing_memory
@@ -84,6 +83,8 @@ class ExplorerParams:
     # outside, where no ray passes: forgotten, the vehicle turned round a wall's end into it
     # (apartment seed 4, in a variant). Returns the scan sees as surface go as before.
     obstacle_memory_margin_m: float = 0.1
+    # Each scan first aligns the remembered returns to its walls (see companion.core.obstacle_memory).
+    obstacle_memory_align: MemoryAlignParams = field(default_factory=MemoryAlignParams)
     # A vehicle on its way (a goal not reached, a route) that stays within ``stall_radius_m`` for
     # ``stall_s`` is held by something the plan does not see (the lead's remembered returns,
     # say): its leg or goal counts as blocked, as when the sensor sees it so. The lead stopped
@@ -157,61 +158,6 @@ class OdometryHistory:
         self._poses = [correction.compose(p) for p in self._poses]
 
 
-class RecentReturns:
-    """Obstacle returns of the scans of the last ``memory_s`` seconds and ``memory_m`` metres of
-    travel, in the odometry frame."""
-
-    def __init__(self, memory_s: float, memory_m: float, margin_m: float = 0.0) -> None:
-        self.memory_s = memory_s
-        self.memory_m = memory_m
-        self.margin_m = margin_m  # see in_view: seen through this near the view's edge, kept
-        self._scans: deque[tuple[float, float, FloatArray]] = deque()  # stamp, travelled, points
-
-    def add(self, stamp_s: float, travelled_m: float, points_xy: FloatArray) -> None:
-        while self._scans and self._scans[-1][0] > stamp_s:  # the clock went back
-            self._scans.pop()
-        self._scans.append((stamp_s, travelled_m, points_xy))
-        while self._scans[0][0] < stamp_s - self.memory_s - 1e-9 or self._scans[0][1] < travelled_m - self.memory_m:
-            self._scans.popleft()
-
-    def points_xy(self) -> FloatArray:
-        if not self._scans:
-            return np.zeros((0, 2))
-        return np.vstack([pts for _, _, pts in self._scans])
-
-    def newest_count(self) -> int:
-        """How many of :meth:`points_xy` (the last ones) are the newest scan's."""
-        return int(self._scans[-1][2].shape[0]) if self._scans else 0
-
-    def shift(self, correction: Pose2) -> None:
-        """Re-express the points after an estimator reset (``new = correction ∘ old``)."""
-        self._scans = deque((t, d, correction.apply(pts)) for t, d, pts in self._scans)
-
-    def forget_seen(self, scan: DepthScan, sensor: Pose2) -> None:
-        """Forget the earlier scans' points that ``scan`` (the newest, taken at ``sensor``) has
-        its own say about (:func:`in_view`): drift moves old returns a little, and where the
-        sensor looks now it is the authority. What stays is out of its view (or seen through
-        within ``margin_m`` of its edge), or its own points (when it was added already: it is
-        the newest kept, at its stamp)."""
-        pts = self.points_xy()
-        added = bool(self._scans) and self._scans[-1][0] == scan.stamp_s
-        older = pts.shape[0] - (self.newest_count() if added else 0)
-        covered = in_view(scan, sensor, pts[:older], self.margin_m)
-        if covered.any():
-            self.keep(np.concatenate((~covered, np.ones(pts.shape[0] - older, dtype=bool))))
-
-    def keep(self, mask: NDArray[np.bool_]) -> None:
-        """Forget the points whose entry in ``mask`` (one per point of :meth:`points_xy`) is False;
-        a scan left with none is dropped, the newest kept (see :meth:`newest_count`)."""
-        start, kept = 0, deque[tuple[float, float, FloatArray]]()
-        for i, (t, d, pts) in enumerate(self._scans):
-            left = pts[mask[start : start + pts.shape[0]]]
-            start += pts.shape[0]
-            if left.shape[0] or i == len(self._scans) - 1:
-                kept.append((t, d, left))
-        self._scans = kept
-
-
 class Explorer:
     """Map + planner behind one call: :meth:`step`."""
 
@@ -238,10 +184,14 @@ class Explorer:
         self._live: tuple[Pose2, FloatArray, DepthScan] | None = None  # newest scan: pose, returns, scan
         self._newest_view_memo: tuple[DepthScan, shapely.Geometry] | None = None  # see _newest_view
         self._recent = RecentReturns(
-            self.params.obstacle_memory_s, self.params.obstacle_memory_m, self.params.obstacle_memory_margin_m
+            self.params.obstacle_memory_s,
+            self.params.obstacle_memory_m,
+            self.params.obstacle_memory_margin_m,
+            self.params.obstacle_memory_align,
         )
         self._travelled_m = 0.0  # odometry path length, to age the recent returns by
         self._obstacles_xy: FloatArray = np.zeros((0, 2))  # recent returns for this step, odometry frame
+        self._obstacle_sigmas_m: FloatArray = np.zeros(0)  # how far off each may lie (see RecentReturns)
         self._keyframe_stamps: tuple[list[float], list[int]] = ([], [])  # sorted by stamp, for closures
         self._waiting_scan: DepthScan | None = None  # newer than the odometry so far (see step)
         self._looked_around_rad = 0.0  # turned in place at the start so far (see look_around_rad)
@@ -271,6 +221,7 @@ class Explorer:
             returns = returns_xy(scan, self.params.polygon.frontier_range_tolerance_m)
             pose_at_scan = self.history.at(scan.stamp_s) or odom.pose
             self._live = (pose_at_scan, returns, scan)
+            self._recent.align(scan, pose_at_scan, self._travelled_m, self.params.polygon.frontier_range_tolerance_m)
             self._recent.add(scan.stamp_s, self._travelled_m, pose_at_scan.apply(returns))
             if self.current_id is None:  # the first view: there is nothing to plan on before it
                 added = self._maybe_add_keyframe(scan, odom)
@@ -562,8 +513,9 @@ class Explorer:
         newest, remembered = returns[split:], returns[:split]
         vx, vy = self.anchor.rotate(np.array([velocity_in_frame]))[0]
         radius = self.params.planner.body_radius_m
+        sigmas = self._obstacle_sigmas_m[:split]
         limited, blocker = limit_lead_facing_memory(
-            sp, pose, (float(vx), float(vy)), newest, radius, self.params.lead, remembered
+            sp, pose, (float(vx), float(vy)), newest, radius, self.params.lead, remembered, sigmas
         )
         in_place = math.hypot(limited.x_m - pose.x_m, limited.y_m - pose.y_m) <= self.params.planner.goal_reached_m
         limited, blocker = self._look_hold.apply(limited, blocker, pose, remembered, in_place, stamp_s)
@@ -575,6 +527,7 @@ class Explorer:
         """The recent returns (odometry frame), less the earlier scans' inside the newest one's
         view (:meth:`RecentReturns.forget_seen`)."""
         self._recent.forget_seen(newest, pose_at_scan)
+        self._obstacle_sigmas_m = self._recent.sigmas_m()
         return self._recent.points_xy()
 
     def _keyframe_near(self, stamp_s: float, pose: Pose2, gap_s: float) -> int | None:

@@ -138,9 +138,12 @@ def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> Floa
     return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)
 
 
-def first_contact(points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float) -> tuple[float, int]:
+def first_contact(
+    points_xy: FloatArray, direction_xy: tuple[float, float], radius_m: float | FloatArray
+) -> tuple[float, int]:
     """How far a disc of ``radius_m`` at the origin can move along ``direction_xy`` before it
-    touches one of the points, and which one it touches first ((inf, -1) when none is in its way)."""
+    touches one of the points, and which one it touches first ((inf, -1) when none is in its way).
+    ``radius_m`` may be one per point (a berth each)."""
     dx, dy = direction_xy
     norm = math.hypot(dx, dy)
     if norm < 1e-9 or points_xy.shape[0] == 0:

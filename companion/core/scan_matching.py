@@ -108,7 +108,7 @@ def _icp(
             return None
         prior = None if prior_sigmas is None else (pose, guess, prior_sigmas**-2 * sigma_scan_m**2)
         robust_m = None if prior_sigmas is None else sigma_scan_m
-        step = _solve_step(moved[use], closest[use], normals[use], prior, robust_m)
+        step = solve_step(moved[use], closest[use], normals[use], prior, robust_m)
         pose = step.compose(pose)
         moved = pose.apply(points_xy)
         gate = max(p.final_gate_m, p.gate_shrink * gate)
@@ -212,7 +212,7 @@ def _nearest_on_walls(
     return np.asarray(dist, dtype=np.float64), np.asarray(closest, dtype=np.float64), normals, np.asarray(at_end)
 
 
-def _solve_step(
+def solve_step(
     points_xy: FloatArray,
     closest_xy: FloatArray,
     normals: FloatArray,

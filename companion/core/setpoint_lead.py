@@ -13,7 +13,8 @@ corridor was held to a crawl, though stopping that drift takes millimetres. Alre
 return than the body's plain berth (a tight door), even braking carries the vehicle a little
 deeper; there a way no deeper than braking's is allowed (along or away), else it hovered there.
 
-Returns remembered from earlier scans (out of view now) hold the vehicle too, with more berth. When
+Returns remembered from earlier scans (out of view now) hold the vehicle too, with more berth: the
+more, the farther off drift since may have moved each (:mod:`companion.core.obstacle_memory`). When
 they alone hold it where the newest scan would let it go, the vehicle turns to look at the one in its
 way (:func:`limit_lead_facing_memory`): the sensor then sees it again, or sees through it, and the scan
 decides. Forgetting it instead (an age limit) let a vehicle that had hovered beside a thin wall's
@@ -44,6 +45,11 @@ class LeadParams:
     # margin a vehicle sliding past a corner outside its field of view touched it (longhall
     # seed 2). The newest scan's returns keep the plain margin: it is ahead, where speed is.
     memory_margin_m: float = 0.05
+    # And farther by this many standard deviations of how far off each may lie by now: the
+    # drift since its scan that aligning the memory to the newest scans could not take out
+    # (companion.core.obstacle_memory; along a corridor, or through a door, the walls in view
+    # fix nothing along the way).
+    memory_sigmas: float = 2.0
     stop_margin_m: float = 0.1  # the setpoint stays this much short of touching
     moving_mps: float = 0.1  # above this speed the motion is checked too (its predicted way or its line)
     # The contact radius grows by this many seconds of speed: at speed the vehicle does not hold
@@ -86,6 +92,7 @@ def limit_lead(
     body_radius_m: float,
     params: LeadParams,
     remembered_xy: FloatArray | None = None,
+    remembered_sigma_m: FloatArray | None = None,
 ) -> Setpoint:
     """The setpoint moved along its line from the vehicle to at most the allowed lead (yaw kept).
 
@@ -96,7 +103,7 @@ def limit_lead(
     not shrink the berth to nothing (office 2 flew into a wall that way). The faster it moves,
     the wider a berth its line must give a return.
     """
-    lead, _ = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy)
+    lead, _ = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy, remembered_sigma_m)
     return _within(setpoint, pose, lead)
 
 
@@ -108,11 +115,14 @@ def limit_lead_facing_memory(
     body_radius_m: float,
     params: LeadParams,
     remembered_xy: FloatArray,
+    remembered_sigma_m: FloatArray | None = None,
 ) -> tuple[Setpoint, FloatArray | None]:
     """:func:`limit_lead`; but when remembered returns alone hold the vehicle (see
     :class:`LeadParams`), the setpoint faces the one its way touches first, so the sensor sees it
     again. Returns the setpoint and that return (None when nothing remembered holds it)."""
-    held, blocker = _lead_m(setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy)
+    held, blocker = _lead_m(
+        setpoint, pose, velocity_xy, returns_xy, body_radius_m, params, remembered_xy, remembered_sigma_m
+    )
     limited = _within(setpoint, pose, held)
     if blocker is None or held > params.hold_m:
         return limited, None
@@ -177,7 +187,7 @@ class _ReturnSet(NamedTuple):
     """One set of returns the lead keeps clear of (the newest scan's, or the remembered ones)."""
 
     rel_xy: FloatArray  # relative to the vehicle
-    contact_m: float  # the berth the way must keep from them
+    contact_m: FloatArray  # the berth the way must keep from each
     remembered: bool
     tight: bool  # the vehicle is already closer to one than the body's plain berth (a tight door)
 
@@ -190,6 +200,7 @@ def _lead_m(
     body_radius_m: float,
     params: LeadParams,
     remembered_xy: FloatArray | None,
+    remembered_sigma_m: FloatArray | None = None,
 ) -> tuple[float, FloatArray | None]:
     """The allowed lead, and the remembered return that limits it (None when a newest return,
     the maximum lead or the setpoint's own distance does)."""
@@ -201,14 +212,18 @@ def _lead_m(
     if not params.predict_way and speed > params.moving_mps:
         directions.append(velocity_xy)  # the motion's straight line instead of its predicted way
     remembered = np.zeros((0, 2)) if remembered_xy is None else remembered_xy
+    spread = np.zeros(remembered.shape[0]) if remembered_sigma_m is None else remembered_sigma_m
     limit: FloatArray | None = None
     sets: list[_ReturnSet] = []
-    for points, radius, kept in ((returns_xy, reach, False), (remembered, reach + params.memory_margin_m, True)):
+    for points, radius, kept in (
+        (returns_xy, np.full(returns_xy.shape[0], reach), False),
+        (remembered, reach + params.memory_margin_m + params.memory_sigmas * spread, True),
+    ):
         if points.shape[0] == 0:
             continue
         rel = points - [pose.x_m, pose.y_m]
         nearest = float(np.min(np.hypot(rel[:, 0], rel[:, 1])))
-        contact = min(radius, 0.95 * nearest)
+        contact = np.minimum(radius, 0.95 * nearest)
         sets.append(_ReturnSet(rel, contact, kept, nearest < body_radius_m + params.contact_margin_m))
         for direction in directions:
             travel, i = first_contact(rel, direction, contact)
@@ -290,13 +305,15 @@ def _touches(path: FloatArray, sets: list[_ReturnSet]) -> list[tuple[float, Floa
     lo, hi = path.min(axis=0), path.max(axis=0)
     out: list[tuple[float, FloatArray | None]] = []
     for rel, contact, _, _ in sets:
-        near = np.all((rel > lo - contact) & (rel < hi + contact), axis=1)
+        reach = contact[:, None]
+        near = np.all((rel > lo - reach) & (rel < hi + reach), axis=1)
         if not near.any():
             out.append((0.0, None))
             continue
         pts = rel[near]
         closest = np.sqrt(((path[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2).min(axis=0))
-        i = int(np.argmin(closest))
-        depth = contact - float(closest[i])
+        inside = contact[near] - closest
+        i = int(np.argmax(inside))
+        depth = float(inside[i])
         out.append((depth, pts[i]) if depth > 0.0 else (0.0, None))
     return out
