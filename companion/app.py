@@ -191,10 +191,11 @@ def planner_params(with_loop_closures: bool) -> PlannerParams:
     on arriving at a goal (``look_ahead_m`` 0; on the last metre, the room run without closures,
     seed 1, went to its 900 s limit where it had ended by itself at 594 s), and a goal path's
     leg the scan sees grazing a return drops the goal (``sidestep_goal_legs``; flown round, the
-    loop run with the companion's own closures, seed 2, ended at coverage 0.947)."""
+    loop run with the companion's own closures, seed 2, ended at coverage 0.947). Nor is session
+    48's shorter settle at a goal: 1 s, as before."""
     if with_loop_closures:
         return PlannerParams()
-    return PlannerParams(distance_weight_rad_per_m=0.08, look_ahead_m=0.0, sidestep_goal_legs=False)
+    return PlannerParams(distance_weight_rad_per_m=0.08, look_ahead_m=0.0, sidestep_goal_legs=False, settle_s=1.0)
 
 
 LoopClosureSource = Literal["back_end", "scan_matching", "none"]

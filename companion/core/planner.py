@@ -71,9 +71,15 @@ class PlannerParams:
     # building (session 46). 0 turns only on arrival.
     look_ahead_m: float = 1.0
     # After arriving at a goal: how long to wait before a vertex still open is closed as looked
-    # at (with its neighbours). 0.3 s saved 2 % of the exploration time, but ended lshape seed
-    # 11 `complete` at 0.961, a room unseen (session 20).
-    settle_s: float = 1.0
+    # at (with its neighbours). A vertex the view on arrival closes is closed the next step; one
+    # still open after that stayed open to the end of a 1 s wait (65 goals on a generated
+    # building), so most of the wait bought nothing. 0.3 s since session 48 (1 s before): alone
+    # -2.3 % and -3.3 % time on the shipped maps, seeds 1-5 and 6-10; held back in session 47
+    # when its trajectories met a collision by the lead's remembered returns, until their berth
+    # grew with their drift (companion.core.obstacle_memory). Session 20 had tried it and gone
+    # back when lshape seed 11 ended at coverage 0.961; it now ends at 1.000 (lshape and
+    # apartment, seeds 11-20, all `complete`). Without loop closures 1 s (companion.app.planner_params).
+    settle_s: float = 0.3
     max_attempts: int = 2
     cruise_speed_mps: float = 1.5
     goal_timeout_min_s: float = 10.0
