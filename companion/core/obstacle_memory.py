@@ -108,34 +108,41 @@ def align_to_walls(
     pose = Pose2.identity()
     prior_var = np.array([prior_sigma_xy_m, prior_sigma_xy_m, prior_sigma_yaw_rad]) ** 2
     weights = p.spread_m**2 / prior_var
-    b = walls.bearings_rad
-    for gate_m in (*p.gates_m, 0.0):  # the last pass only judges the result
+    for gate_m in p.gates_m:
         moved = pose.apply(points_xy)
-        j = np.searchsorted(b, np.arctan2(moved[:, 1], moved[:, 0])) - 1
-        inside = (j >= 0) & (j < b.size - 1)
-        j = np.where(inside, j, 0)
-        use = inside & walls.ok[j]
-        a, c = walls.starts_xy[j], walls.ends_xy[j]
-        seg = c - a
-        normals = np.column_stack((-seg[:, 1], seg[:, 0])) / np.maximum(np.hypot(seg[:, 0], seg[:, 1]), 1e-12)[:, None]
-        off = np.abs(np.einsum("nk,nk->n", normals, moved - a))
-        if gate_m == 0.0:
-            on = use & (off < p.inlier_m)
-            if int(np.count_nonzero(on)) < p.min_inliers:
-                return None
-            # Each return on a wall fixes the motion along its wall's normal (and the heading by
-            # its lever about the sensor), to the returns' spread; the prior fixes the rest.
-            n, q = normals[on], moved[on]
-            jac = np.column_stack((n, n[:, 1] * q[:, 0] - n[:, 0] * q[:, 1]))
-            w = 1.0 / (1.0 + (off[on] / p.spread_m) ** 2)
-            information = jac.T @ (w[:, None] * jac) / p.spread_m**2 + np.diag(1.0 / prior_var)
-            return Alignment(pose, np.asarray(np.linalg.inv(information), dtype=np.float64))
-        use &= off < gate_m
+        paired, on_xy, normals, off = _pair_with_walls(moved, walls)
+        use = paired & (off < gate_m)
         if int(np.count_nonzero(use)) < p.min_inliers:
             return None
-        step = solve_step(moved[use], a[use], normals[use], (pose, Pose2.identity(), weights), p.spread_m)
+        step = solve_step(moved[use], on_xy[use], normals[use], (pose, Pose2.identity(), weights), p.spread_m)
         pose = step.compose(pose)
-    return None  # not reached: the last pass returns
+    moved = pose.apply(points_xy)
+    paired, _, normals, off = _pair_with_walls(moved, walls)
+    on = paired & (off < p.inlier_m)
+    if int(np.count_nonzero(on)) < p.min_inliers:
+        return None
+    # Each return on a wall fixes the motion along its wall's normal (and the heading by its
+    # lever about the sensor) to the returns' spread; the prior fixes the rest.
+    n, q = normals[on], moved[on]
+    jac = np.column_stack((n, n[:, 1] * q[:, 0] - n[:, 0] * q[:, 1]))
+    w = 1.0 / (1.0 + (off[on] / p.spread_m) ** 2)
+    information = jac.T @ (w[:, None] * jac) / p.spread_m**2 + np.diag(1.0 / prior_var)
+    return Alignment(pose, np.asarray(np.linalg.inv(information), dtype=np.float64))
+
+
+def _pair_with_walls(
+    points_xy: FloatArray, walls: ScanWalls
+) -> tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray]:
+    """Each point's wall: the one between the two rays its bearing falls between. Returns whether
+    it has one, a point on it (its start), its unit normal and the point's distance to its line."""
+    b = walls.bearings_rad
+    j = np.searchsorted(b, np.arctan2(points_xy[:, 1], points_xy[:, 0])) - 1
+    inside = (j >= 0) & (j < b.size - 1)
+    j = np.where(inside, j, 0)
+    start, seg = walls.starts_xy[j], walls.ends_xy[j] - walls.starts_xy[j]
+    normals = np.column_stack((-seg[:, 1], seg[:, 0])) / np.maximum(np.hypot(seg[:, 0], seg[:, 1]), 1e-12)[:, None]
+    off = np.abs(np.einsum("nk,nk->n", normals, points_xy - start))
+    return inside & walls.ok[j], start, normals, off
 
 
 class _Scan(NamedTuple):
