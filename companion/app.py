@@ -247,7 +247,7 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
         params = replace(
             params,
             odometry_matching=replace(params.odometry_matching, enabled=False),
-            lead=replace(params.lead, predict_way=False),
+            lead=replace(params.lead, predict_way=False, look_follow_m=0.0),  # an unaligned memory stays put
             use_reported_velocity=False,
             obstacle_memory_margin_m=0.0,
             obstacle_memory_align=replace(params.obstacle_memory_align, enabled=False),

@@ -620,6 +620,25 @@ def test_a_remembered_wall_is_kept_where_the_newest_scan_shows_drift_has_moved_i
     assert north_wall_error_m(obstacle_memory_align=MemoryAlignParams(enabled=False)) > 0.03
 
 
+def test_rocking_is_caught_while_each_scan_moves_the_remembered_return_a_little():
+    """The memory's alignment to each scan moves a remembered return a few centimetres a step;
+    the return faced is followed (``LeadParams.look_follow_m``), so the rocking is still caught
+    and the vehicle goes on facing it. Matched exactly, it was "gone" the step after each look."""
+    ex = explorer()
+    here = Pose2(0.0, 0.0, 0.0)
+    ahead, turn_back = Setpoint(1.0, 0.0, 0.0), Setpoint(0.0, 0.0, 0.0)
+    yaws = []
+    for i in range(10):
+        ex._obstacles_xy, ex._obstacle_sigmas_m = np.array([[0.3 + 0.02 * i, -0.25]]), np.zeros(1)
+        out = ex._within_lead(ahead if i % 2 == 0 else turn_back, here, (0.0, 0.0), 0.1 * i)
+        yaws.append(out.yaw_rad)
+    first_held = ex.params.lead.rock_turns - 1
+    turns = yaws[1::2]
+    assert all(y == 0.0 for y in turns[:first_held])
+    assert all(y < -0.4 for y in turns[first_held:])  # facing the return, wherever it now lies
+    assert tuning_for("none", 0.05).lead.look_follow_m == 0.0  # unaligned, a return stays put
+
+
 def test_held_by_a_remembered_wall_alone_the_vehicle_turns_to_look_at_it():
     """The vehicle saw a wall 0.4 m north, then turned east (open space in view). Asked to go
     north, the remembered wall holds it where the newest scan alone would not: the setpoint

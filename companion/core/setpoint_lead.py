@@ -68,6 +68,11 @@ class LeadParams:
     rock_turns: int = 3
     rock_window_s: float = 1.5
     look_hold_s: float = 2.0
+    # The return faced is followed from step to step to the nearest remembered one within this:
+    # each scan's alignment moves the memory a few centimetres (companion.core.obstacle_memory),
+    # and matched exactly, the return was "gone" the step after each look, so the rocking above
+    # was never caught (stalls 0 -> 11 in 450 runs, session 48).
+    look_follow_m: float = 0.1
     # Moving, the vehicle does not fly the setpoint's straight line: its momentum carries it on
     # while it turns. The way it would take, were the setpoint to stay put, is predicted with an
     # autopilot that coasts ``model_delay_s`` (the setpoint's trip and a control cycle), then
@@ -158,10 +163,11 @@ class LookHold:
         p, looked = self.params, self._looked_at
         if blocker is None and looked is not None:
             near = np.hypot(*(remembered_xy - looked[1]).T) if remembered_xy.shape[0] else np.zeros(0)
-            gone = near.size == 0 or float(np.min(near)) > 1e-9
+            gone = near.size == 0 or float(np.min(near)) > p.look_follow_m
             if gone or not in_place or stamp_s - looked[0] > p.look_hold_s:
                 self._looked_at, self._turns_back = None, []
             else:
+                looked = self._looked_at = (looked[0], remembered_xy[int(np.argmin(near))])
                 recent = [t for t in self._turns_back if stamp_s - t <= p.rock_window_s]
                 self._turns_back = [*recent, stamp_s] if self._was_looking else recent
                 if len(self._turns_back) >= p.rock_turns:  # rocking: face the return still
