@@ -167,7 +167,6 @@ class RecentReturns:
         self.memory_m = memory_m
         self.margin_m = margin_m  # see in_view: seen through this near the view's edge, kept
         self.align_params = align or MemoryAlignParams(enabled=False)
-        self.alignments = 0  # scans the memory was aligned to
         self._scans: deque[_Scan] = deque()
 
     def add(self, stamp_s: float, travelled_m: float, points_xy: FloatArray) -> None:
@@ -235,7 +234,6 @@ class RecentReturns:
             return None
         motion = sensor.compose(found.motion).compose(local)
         self.shift(motion)
-        self.alignments += 1
         return motion
 
     def forget_seen(self, scan: DepthScan, sensor: Pose2) -> None:
