@@ -229,7 +229,7 @@ class RecentReturns:
         co, si = math.cos(sensor.yaw_rad), math.sin(sensor.yaw_rad)
         turn = np.array([[co, -si], [si, co]])
         added = turn @ covariance[:2, :2] @ turn.T + covariance[2, 2] * p.lever_m**2 * np.eye(2)
-        self._scans = deque(scan._replace(covariance=scan.covariance + added) for scan in self._scans)
+        self._scans = deque(old._replace(covariance=old.covariance + added) for old in self._scans)
         if found is None:
             return None
         motion = sensor.compose(found.motion).compose(local)
