@@ -187,7 +187,7 @@ def test_a_remembered_return_that_may_have_drifted_is_given_a_berth_wider_by_its
         return lead_of(limit_lead(sp, pose, (0.0, 0.0), NO_RETURNS, BODY_M, params, beside, np.array(sigmas)), pose)
 
     assert lead_m([0.0, 0.0]) == pytest.approx(1.5)
-    assert lead_m([0.04, 0.0]) == pytest.approx(1.5)  # 0.43 clear of 0.43 - a hair
+    assert lead_m([0.035, 0.0]) == pytest.approx(1.5)  # 0.43 m off: clear of 0.35 + 0.07 m
     assert lead_m([0.05, 0.0]) < 1.0 - 0.1  # held short of the far one, by the stop margin
     assert lead_m([0.0, 0.05]) < 0.6 - 0.1  # or of the near one
 

@@ -166,6 +166,7 @@ class RecentReturns:
         self.memory_s = memory_s
         self.memory_m = memory_m
         self.margin_m = margin_m  # see in_view: seen through this near the view's edge, kept
+        # Not aligned unless told: perfect poses (the grid baseline's) leave nothing to align.
         self.align_params = align or MemoryAlignParams(enabled=False)
         self._scans: deque[_Scan] = deque()
 
