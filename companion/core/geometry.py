@@ -97,12 +97,13 @@ def apply_each(poses: list[Pose2] | FloatArray, points_xy: FloatArray, owner: ND
     in one vectorised pass: many keyframes' points into one frame at once. ``poses`` may also be
     rows of ``x_m, y_m, yaw_rad`` (as :class:`~companion.core.pose_graph.Reached` holds them)."""
     if isinstance(poses, np.ndarray):
-        xyt = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[owner]
+        rows = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     else:
-        xyt = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses], dtype=np.float64).reshape(-1, 3)[owner]
-    c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+        rows = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses], dtype=np.float64).reshape(-1, 3)
+    # The turn's cosine and sine once per pose, not per point (the same numbers).
+    c, s = np.cos(rows[:, 2])[owner], np.sin(rows[:, 2])[owner]
     x, y = points_xy[:, 0], points_xy[:, 1]
-    return np.column_stack((c * x - s * y + xyt[:, 0], s * x + c * y + xyt[:, 1]))
+    return np.column_stack((c * x - s * y + rows[owner, 0], s * x + c * y + rows[owner, 1]))
 
 
 def apply_grouped(poses: list[Pose2] | FloatArray, groups: list[FloatArray]) -> FloatArray:
