@@ -555,6 +555,32 @@ def test_a_goal_on_a_path_at_a_legs_clearance_found_blocked_counts_a_failed_try(
         assert planner.attempts.get(key, 0) == (1 if eased else 0)
 
 
+def test_a_goal_whose_last_leg_is_blocked_this_near_is_looked_from_where_the_vehicle_is():
+    """0.4 m short of a goal on a path at a leg's clearance, the newest scan sees its last leg
+    pass a return too close: the vehicle looks from where it is (the goal moves there, no try is
+    counted) rather than dropping it. Found blocked 0.42 m short, such a goal counted a failed
+    try, was out of reach from its keyframe and set aside at coverage 1.000 (room seed 13).
+    From 1 m short it is dropped and counts the try, as before."""
+    from companion.core.planner import _Candidate
+
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)))
+    open_idx = targetable_indices(kf, 0.3)
+    key = FrontierKey(kf.keyframe_id, int(open_idx[np.argmin(np.abs(kf.polygon.vertices_xy[open_idx, 1]))]))
+    goal_xy = np.array([3.0, 0.0])
+    for start_x, kept in ((2.6, True), (2.0, False)):
+        post = np.array([[start_x + 0.3, 0.2]])  # beside the last leg, 0.2 m from it
+        planner = FrontierPlanner()
+        candidate = _Candidate(key, goal_xy, 0.0, 0.0, path=goal_xy[None, :].copy(), eased=True)
+        planner._commit(m, kf.keyframe_id, candidate, np.array([start_x, 0.0]), 100.0)
+        planner.plan(m, kf.keyframe_id, Pose2(start_x, 0.0, 0.0), 100.1, live_obstacles_xy=post)
+        assert (planner.goal is not None and planner.goal.key == key) is kept
+        assert planner.attempts.get(key, 0) == (0 if kept else 1)
+        if kept:
+            assert planner.goal is not None and planner.goal.path is None
+            assert np.allclose(planner.goal.local_xy, (start_x, 0.0))  # looked from here
+
+
 def test_a_goal_found_blocked_again_from_the_same_spot_counts_a_failed_try():
     """The first time the newest scan sees a goal's path blocked, it only cools down; found
     blocked again from the same spot when taken after that, it counts a failed try, so a

@@ -62,6 +62,7 @@ class PlannerParams:
     # session 23 (0.08 before): on 21 maps it flew shorter paths and ended sooner.
     distance_weight_rad_per_m: float = 0.2
     goal_reached_m: float = 0.3
+    near_goal_m: float = 0.5  # a goal whose path's last leg is found blocked this near is looked from there
     same_view_rad: float = 0.5  # a goal at a keyframe's origin turned less than this repeats its view
     waypoint_reached_m: float = 0.5
     look_reached_rad: float = 0.3
@@ -437,6 +438,14 @@ class FrontierPlanner:
                 if aim is not None:
                     goal.path = np.vstack((pose.inverse().apply(aim.reshape(1, 2)), goal.path))
                     return self._fly(vehicle, aim, look, Mode.EXPLORING, goal.key)
+                if dist <= self.params.near_goal_m:
+                    # Its last leg blocked this near, look from here: a goal is a place to look
+                    # from, and one 0.4 m off sees the frontier as well. (Found blocked 0.42 m short,
+                    # a goal by a wall counted a failed try; from its keyframe it was out of reach,
+                    # and room seed 13 set it aside at coverage 1.000.)
+                    goal.local_xy = pose.inverse().apply_point(float(here[0]), float(here[1]))
+                    goal.path = None
+                    return self._fly(vehicle, here, look, Mode.EXPLORING, goal.key)
                 if goal.eased:  # the way the full clearance did not find: blocked, it is a try
                     self._failed(goal.key, stamp_s)
                 self._drop(local_map, frame_id, here, goal.key, stamp_s)
