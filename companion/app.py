@@ -192,10 +192,17 @@ def planner_params(with_loop_closures: bool) -> PlannerParams:
     seed 1, went to its 900 s limit where it had ended by itself at 594 s), and a goal path's
     leg the scan sees grazing a return drops the goal (``sidestep_goal_legs``; flown round, the
     loop run with the companion's own closures, seed 2, ended at coverage 0.947). Nor is session
-    48's shorter settle at a goal: 1 s, as before."""
+    48's shorter settle at a goal: 1 s, as before. Nor session 50's longer run a frontier needs
+    while longer ones are left (``min_frontier_size_m`` 0.6): without closures, 0.3 m as before."""
     if with_loop_closures:
         return PlannerParams()
-    return PlannerParams(distance_weight_rad_per_m=0.08, look_ahead_m=0.0, sidestep_goal_legs=False, settle_s=1.0)
+    return PlannerParams(
+        distance_weight_rad_per_m=0.08,
+        look_ahead_m=0.0,
+        sidestep_goal_legs=False,
+        settle_s=1.0,
+        min_frontier_size_m=0.3,
+    )
 
 
 LoopClosureSource = Literal["back_end", "scan_matching", "none"]

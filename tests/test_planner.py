@@ -1,5 +1,6 @@
 """Frontier planner rules, one at a time."""
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable
@@ -9,7 +10,7 @@ import pytest
 import shapely
 
 from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
-from companion.core.frontiers import FrontierKey, targetable_indices
+from companion.core.frontiers import FrontierKey, run_sizes_m, targetable_indices
 from companion.core.geometry import Pose2
 from companion.core.local_map import Keyframe, LocalMap, MapParams
 from companion.core.messages import DepthScan
@@ -216,6 +217,57 @@ def test_a_goal_is_not_dropped_on_the_spot_it_was_taken_unless_the_newest_scan_b
     m, b, planner, key = committed_then_walled()
     planner.plan(m, b, Pose2(0.0, 0.0, 0.0), 0.1, wall_returns)
     assert planner.goal is None or planner.goal.key != key  # the newest scan sees it blocked
+
+
+def _fragment_here_run_there(open_there: int) -> tuple[LocalMap, Keyframe, Keyframe]:
+    """Keyframe A sees 5 m of free space ahead, every frontier vertex closed as a wall but one in
+    the middle of its range arc: a gap seen through, whose run spans half of each edge (about
+    0.37 m; the arc's vertices lie about 0.37 m apart). Keyframe C, 40 m on past B (which sees
+    nothing open), is closed the same way but for ``open_there`` vertices."""
+    scan_5m = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+    m = LocalMap()
+
+    def add(stamp_s: float, y_m: float, open_vertices: int) -> Keyframe:
+        parent = None if not m.keyframes else (max(m.keyframes), Pose2(0.0, 20.0, 0.0))
+        kf = m.add_keyframe(stamp_s, Pose2(0.0, y_m, 0.0), scan_to_polygon(scan_5m), parent)
+        idx = np.flatnonzero(kf.kinds == VertexKind.FRONTIER)
+        arc = idx[np.hypot(*kf.polygon.vertices_xy[idx].T) > 4.9]
+        mid = arc.size // 2 - open_vertices // 2
+        m.close_frontiers(kf.keyframe_id, np.setdiff1d(idx, arc[mid : mid + open_vertices]), VertexKind.OBSTACLE)
+        return kf
+
+    a, _, c = add(0.0, 0.0, 1), add(1.0, 20.0, 0), add(2.0, 40.0, open_there)
+    return m, a, c
+
+
+def test_a_frontier_fragment_waits_until_no_longer_run_is_left_and_is_near():
+    """A fragment (a run under 0.6 m) in view is passed over while a longer run is left anywhere:
+    the vehicle flies back along the pose graph to C's 0.75 m run instead. With nothing longer
+    left it is flown to from within 4 m (a fragment may be the way on: never flown to, runs under
+    0.8 m ended a spiral corridor's exploration at coverage 0.13), not from 20 m away, where
+    exploration is complete. Without loop closures, where 0.6 m was not measured, 0.3 m holds
+    (companion.app.planner_params)."""
+    from companion.app import planner_params
+
+    m, a, c = _fragment_here_run_there(2)
+    sizes = run_sizes_m(a.kinds, a.polygon.vertices_xy)
+    params = PlannerParams()
+    assert params.fragment_size_m < sizes.max() < params.min_frontier_size_m
+    assert run_sizes_m(c.kinds, c.polygon.vertices_xy).max() > params.min_frontier_size_m
+    planner = FrontierPlanner(params)
+    decision = planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0)
+    assert decision.mode is Mode.BACKTRACKING and planner.route is not None
+    assert planner.route.target_keyframe == c.keyframe_id
+    without = FrontierPlanner(planner_params(False)).plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0)
+    assert without.mode is Mode.EXPLORING and without.goal is not None and without.goal.keyframe_id == a.keyframe_id
+    m, a, c = _fragment_here_run_there(0)
+    decision = FrontierPlanner(params).plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0)
+    assert decision.mode is Mode.EXPLORING and decision.goal is not None
+    assert decision.goal.keyframe_id == a.keyframe_id and sizes[decision.goal.index] > 0.0
+    b = m.graph.path(a.keyframe_id, c.keyframe_id)[1]  # 20 m from A
+    assert FrontierPlanner(params).plan(m, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
+    never = dataclasses.replace(params, fragment_size_m=params.min_frontier_size_m)  # no fragment ever
+    assert FrontierPlanner(never).plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
 
 
 def test_a_goal_whose_run_other_views_closed_down_to_a_remnant_is_still_flown_to():

@@ -50,7 +50,21 @@ class PlannerParams:
     body_radius_m: float = 0.25
     clearance_margin_m: float = 0.15
     standoff_m: float = 1.0
-    min_frontier_size_m: float = 0.3
+    # A run of open frontier shorter than this is a fragment, not worth a flight while a longer
+    # run is left (the stale vertices of thesis 3.5.4). 0.6 m, session 50 (0.3 before): after
+    # coverage 0.99, room seed 10 and cave seed 8 flew 58 and 49 s to runs of 0.4-1.1 m (a view's
+    # range-limit corner by a wall, a vertex on its field of view's side) whose space views 17-18
+    # hops along had seen, placed 0.4 m off, past what the drift margin lets close.
+    min_frontier_size_m: float = 0.6
+    # With no longer run left to fly to, fragments down to ``fragment_size_m`` whose keyframe lies
+    # within ``fragment_reach_m`` are, before exploration ends: a fragment may be the way on. Never
+    # flown to, runs under 0.8 m ended spiral seeds 3 and 4 `complete` at coverage 0.13, the
+    # corridor's way on past its first corner a shadow edge of 0.65-0.78 m a few keyframes back.
+    # Not from farther: routed back to from anywhere, the fragments left along the way took 3.4x
+    # the time after coverage 0.99.
+    fragment_size_m: float = 0.3
+    fragment_reach_m: float = 4.0
+    fragment_reach_hops: int = 40  # a longer chain of the graph is no measure of nearness
     # The best this many candidates by score are checked for a straight path, then for a path
     # through free space; a route back only when none has either. 48 (24 before session 43): at
     # a corridor's mouth or a door the 24 best by heading often all lay past a jamb, and the
@@ -188,6 +202,7 @@ class _Goal:
 class _Route:
     keyframes: list[int]  # remaining route, next waypoint first; the last one holds the frontier
     target_keyframe: int
+    size_m: float = 0.0  # the shortest frontier run it is flown for (0: down to the fragment size)
 
 
 @dataclass(slots=True)
@@ -654,9 +669,11 @@ class FrontierPlanner:
         only_keyframe: int | None = None,
         dense: bool = False,
         limit: int | None = None,
+        min_size_m: float | None = None,
     ) -> list[_Candidate]:
         """Goal candidates for the open frontiers in view (of one keyframe only, if given), best
-        first (least change of heading, then nearest), inside known free space; at most ``limit``."""
+        first (least change of heading, then nearest), inside known free space; at most ``limit``;
+        runs at least ``min_size_m`` long (default: ``min_frontier_size_m``)."""
         p = self.params
         key_ids: list[NDArray[np.intp]] = []  # keyframe id and vertex index of each goal
         key_idx: list[NDArray[np.intp]] = []
@@ -670,11 +687,13 @@ class FrontierPlanner:
         for key in self.set_aside if dense else self.set_aside | self._cooling.keys() | self._origin_only:
             skip.setdefault(key.keyframe_id, []).append(key.index)
         looked = self._looked_in(local_map, view.keyframe_id)
+        if min_size_m is None:
+            min_size_m = p.min_frontier_size_m
         for k, pose in view.poses.items():
             if only_keyframe is not None and k != only_keyframe:
                 continue
             kf = local_map.keyframes[k]
-            idx = targetable_indices(kf, p.min_frontier_size_m)
+            idx = targetable_indices(kf, min_size_m)
             if k in skip and idx.size:
                 idx = idx[~np.isin(idx, skip[k])]
             if idx.size == 0:
@@ -786,7 +805,11 @@ class FrontierPlanner:
     ) -> _Candidate | None:
         dense = only_keyframe is not None
         limit = self.params.max_candidates_checked * (8 if dense else 1)
-        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense, limit)
+        # At a route's target, its fragments too when the route was for them.
+        size = self.params.min_frontier_size_m
+        if dense and self.route is not None and self.route.target_keyframe == only_keyframe:
+            size = max(self.params.fragment_size_m, min(size, self.route.size_m))
+        candidates = self._candidates(local_map, view, vehicle, here, only_keyframe, dense, limit, size)
         if candidates:
             # The best candidate still open once views along the graph are checked, with a clear
             # straight path; the graph is checked only for those the clearance tests pass.
@@ -946,7 +969,7 @@ class FrontierPlanner:
         if (
             self.route is None
             or self.route.target_keyframe not in local_map.keyframes
-            or not self._has_live_targets(local_map, self.route.target_keyframe)
+            or not self._has_live_targets(local_map, self.route.target_keyframe, self.route.size_m)
         ):
             self.route = self._find_route(local_map, frame_id)
             self._arrived_at = None
@@ -956,7 +979,7 @@ class FrontierPlanner:
         # Progress watchdog: a target keyframe not reached in time (legs blocked one after
         # another, a waypoint never reached) counts a failed try for its frontiers.
         if self._route_stalled(route, stamp_s):
-            self._fail_keyframe(local_map, route.target_keyframe, stamp_s)
+            self._fail_keyframe(local_map, route.target_keyframe, stamp_s, size_m=route.size_m)
             self.blocked_legs.clear()
             self.route = None
             self._progress_target = None
@@ -978,15 +1001,15 @@ class FrontierPlanner:
             # at coverage 1.000.
             if abs(wrap_angle(vehicle.yaw_rad)) > self.params.look_reached_rad:
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, 0.0))
-            idx = np.array(self._targets(local_map, frame_id), dtype=np.intp)
+            idx = np.array(self._targets(local_map, frame_id, route.size_m), dtype=np.intp)
             if self._off_surfaces(local_map, frame_id, Pose2.identity(), idx, always=True).size == 0:
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
-            self._fail_keyframe(local_map, frame_id, stamp_s, at_origin=True)
+            self._fail_keyframe(local_map, frame_id, stamp_s, at_origin=True, size_m=route.size_m)
             self._tried_in_vain = frame_id
             self.route = None
             # Out of reach from here (seen through a door at an angle, say): before leaving, go as
             # near as the free space leads and look again; a new view there may open the way.
-            near = self._approach(local_map, frame_id, view, here)
+            near = self._approach(local_map, frame_id, view, here, route.size_m)
             if near is not None:
                 self._commit(local_map, frame_id, near, here, stamp_s)
                 return self._fly(vehicle, near.aim_xy, near.look_rad, Mode.EXPLORING, near.key)
@@ -1037,9 +1060,9 @@ class FrontierPlanner:
             self.blocked_legs.add((frame_id, nxt))
             self._leg = None
             if skip == 0:
-                self.route = self._find_route(local_map, frame_id, route.target_keyframe)
+                self.route = self._find_route(local_map, frame_id, route.target_keyframe, route.size_m)
                 if self.route is None:
-                    self._fail_keyframe(local_map, route.target_keyframe, stamp_s)
+                    self._fail_keyframe(local_map, route.target_keyframe, stamp_s, size_m=route.size_m)
                     self._tried_in_vain = route.target_keyframe
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         del route.keyframes[:skip]
@@ -1122,10 +1145,12 @@ class FrontierPlanner:
             return None
         return np.asarray(aims[idx[int(np.argmax(inside))]], dtype=np.float64)
 
-    def _approach(self, local_map: LocalMap, frame_id: int, view: LocalView, here: FloatArray) -> _Candidate | None:
+    def _approach(
+        self, local_map: LocalMap, frame_id: int, view: LocalView, here: FloatArray, min_size_m: float
+    ) -> _Candidate | None:
         """A step towards the keyframe's frontier (not set aside) that the free space leads
         nearest to, when that ends at least ``approach_gain_m`` nearer it than ``here``."""
-        idx = self._targets(local_map, frame_id)
+        idx = self._targets(local_map, frame_id, min_size_m)
         reach = self._reach(view, here) if idx else None
         if reach is None:
             return None
@@ -1201,27 +1226,32 @@ class FrontierPlanner:
         """Within ``radius_m`` of a waypoint and slow enough to turn there."""
         return float(np.hypot(*(point - here))) <= radius_m and self._speed_mps <= self.params.corner_speed_mps
 
-    def _fail_keyframe(self, local_map: LocalMap, keyframe_id: int, stamp_s: float, at_origin: bool = False) -> None:
-        for i in targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m):
+    def _fail_keyframe(
+        self, local_map: LocalMap, keyframe_id: int, stamp_s: float, at_origin: bool = False, size_m: float = 0.0
+    ) -> None:
+        for i in self._targets(local_map, keyframe_id, size_m, aside_too=True):
             self._failed(FrontierKey(keyframe_id, int(i)), stamp_s, at_origin)
 
-    def _targets(self, local_map: LocalMap, keyframe_id: int) -> list[int]:
-        """A keyframe's open frontier vertices worth a flight and not set aside."""
-        idx = targetable_indices(local_map.keyframes[keyframe_id], self.params.min_frontier_size_m)
-        return [int(i) for i in idx if FrontierKey(keyframe_id, int(i)) not in self.set_aside]
+    def _targets(
+        self, local_map: LocalMap, keyframe_id: int, size_m: float = 0.0, aside_too: bool = False
+    ) -> list[int]:
+        """A keyframe's open frontier vertices whose runs are at least ``size_m`` long (and at
+        least the fragment size: 0 asks for fragments too), not set aside (unless ``aside_too``)."""
+        idx = targetable_indices(local_map.keyframes[keyframe_id], max(size_m, self.params.fragment_size_m))
+        return [int(i) for i in idx if aside_too or FrontierKey(keyframe_id, int(i)) not in self.set_aside]
 
-    def _has_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
-        return bool(self._targets(local_map, keyframe_id))
+    def _has_targets(self, local_map: LocalMap, keyframe_id: int, size_m: float) -> bool:
+        return bool(self._targets(local_map, keyframe_id, size_m))
 
-    def _has_live_targets(self, local_map: LocalMap, keyframe_id: int) -> bool:
+    def _has_live_targets(self, local_map: LocalMap, keyframe_id: int, size_m: float = 0.0) -> bool:
         """Open frontiers worth a flight once views along the pose graph are checked too, and
         slivers judged (a stale frontier costs a look, not a flight)."""
-        if not self._has_targets(local_map, keyframe_id):
+        if not self._has_targets(local_map, keyframe_id, size_m):
             return False
         self._check_through_graph(local_map, keyframe_id)
-        targets = np.array(self._targets(local_map, keyframe_id), dtype=np.intp)
+        targets = np.array(self._targets(local_map, keyframe_id, size_m), dtype=np.intp)
         self._judge_slivers(local_map, keyframe_id, targets)
-        return self._has_targets(local_map, keyframe_id)
+        return self._has_targets(local_map, keyframe_id, size_m)
 
     def _check_through_graph(self, local_map: LocalMap, keyframe_id: int) -> None:
         """Eq. 2.15 for a keyframe's frontiers against the views along the pose graph, once per
@@ -1239,11 +1269,26 @@ class FrontierPlanner:
             self._graph_checked[keyframe_id] = now
             local_map.close_through_graph(keyframe_id, since_id=since)
 
-    def _find_route(self, local_map: LocalMap, frame_id: int, target_id: int | None = None) -> _Route | None:
-        """Fewest-hop route to ``target_id`` (default: the nearest keyframe with open frontiers)
-        that avoids the legs seen blocked; None when there is none."""
+    def _find_route(
+        self, local_map: LocalMap, frame_id: int, target_id: int | None = None, size_m: float | None = None
+    ) -> _Route | None:
+        """Fewest-hop route to ``target_id`` (default: the nearest keyframe with open frontiers,
+        fragments only when no longer run is left) that avoids the legs seen blocked; None when
+        there is none."""
         if target_id is not None:
-            return self._route_to(local_map, frame_id, target_id)
+            size = self.params.min_frontier_size_m if size_m is None else size_m
+            return self._route_to(local_map, frame_id, target_id, size)
+        p = self.params
+        route = self._find_route_for(local_map, frame_id, p.min_frontier_size_m)
+        if route is None and p.fragment_size_m < p.min_frontier_size_m:
+            route = self._find_route_for(local_map, frame_id, p.fragment_size_m, p.fragment_reach_m)
+        return route
+
+    def _find_route_for(
+        self, local_map: LocalMap, frame_id: int, size_m: float, reach_m: float | None = None
+    ) -> _Route | None:
+        """:meth:`_find_route` to the nearest keyframe with runs at least ``size_m`` long (and,
+        if given, its origin within ``reach_m`` of the current keyframe's, as the graph places it)."""
         # Nearest first: each candidate is checked through the graph before a route is planned to
         # it (a stale frontier closed there costs a look, not a flight); the ones beyond the
         # first reachable target wait until they are the nearest.
@@ -1252,12 +1297,14 @@ class FrontierPlanner:
         order = [k for k in local_map.graph.order_from(frame_id) if k != self._tried_in_vain]
         if self._tried_in_vain in local_map.keyframes:
             order.append(self._tried_in_vain)
+        if reach_m is not None:
+            order = [k for k in order if k in self._keyframes_within(local_map, frame_id, reach_m)]
         targets = False
         for k in order:
-            if not self._has_live_targets(local_map, k):
+            if not self._has_live_targets(local_map, k, size_m):
                 continue
             targets = True
-            route = self._route_to(local_map, frame_id, k)
+            route = self._route_to(local_map, frame_id, k, size_m)
             if route is not None:
                 return route
         if targets and self.blocked_legs:
@@ -1268,15 +1315,23 @@ class FrontierPlanner:
             # last route already counted a failed try for its target, which bounds the retries;
             # counting another here would set a target aside for one sighting.
             self.blocked_legs.clear()
-            return self._find_route(local_map, frame_id)
+            return self._find_route_for(local_map, frame_id, size_m, reach_m)
         return None
 
-    def _route_to(self, local_map: LocalMap, frame_id: int, target_id: int) -> _Route | None:
+    def _keyframes_within(self, local_map: LocalMap, frame_id: int, reach_m: float) -> set[int]:
+        """Keyframes whose origins the graph places within ``reach_m`` of ``frame_id``'s, along
+        chains of at most ``fragment_reach_hops``."""
+        hops = self.params.fragment_reach_hops
+        reach = local_map.graph.reached(frame_id, hops)
+        near = (reach.hops <= hops) & (np.hypot(reach.poses[:, 0], reach.poses[:, 1]) <= reach_m)
+        return {int(k) for k in reach.ids[near]}
+
+    def _route_to(self, local_map: LocalMap, frame_id: int, target_id: int, size_m: float) -> _Route | None:
         try:
             path = local_map.graph.path(frame_id, target_id, avoid=self.blocked_legs)
         except GraphError:
             return None
-        return _Route(path[1:] if len(path) > 1 else path, target_id)
+        return _Route(path[1:] if len(path) > 1 else path, target_id, size_m)
 
     # -- output ---------------------------------------------------------------------------------
 
