@@ -1298,7 +1298,8 @@ class FrontierPlanner:
         if self._tried_in_vain in local_map.keyframes:
             order.append(self._tried_in_vain)
         if reach_m is not None:
-            order = [k for k in order if k in self._keyframes_within(local_map, frame_id, reach_m)]
+            near = self._keyframes_within(local_map, frame_id, reach_m)
+            order = [k for k in order if k in near]
         targets = False
         for k in order:
             if not self._has_live_targets(local_map, k, size_m):
