@@ -459,7 +459,7 @@ def test_after_a_loop_closure_each_step_walks_the_graph_for_a_bounded_number_of_
     for step in range(3):
         planner._fresh_checks_left = planner.params.fresh_graph_checks_per_step  # as plan() does
         for k in ids:
-            assert planner._has_live_targets(m, k)  # unchecked ones still count as open
+            assert planner._has_live_targets(m, k, planner.params.fragment_size_m)  # unchecked ones still count as open
         assert len(fresh) == 2 * (step + 1)
     assert sorted(fresh) == sorted(ids)  # each walked once, over three steps
 
@@ -571,7 +571,7 @@ def test_frontiers_out_of_reach_from_their_origin_that_the_scan_sees_as_wall_are
         planner = FrontierPlanner()
         planner.route = _Route([kf.keyframe_id], kf.keyframe_id)
         planner._arrived_at = kf.keyframe_id
-        targets = planner._targets(m, kf.keyframe_id)
+        targets = planner._targets(m, kf.keyframe_id, planner.params.fragment_size_m)
         assert targets
         live = {"live_obstacles_xy": boxed_in, "live_surface": functools.partial(_all_surface, seen_as_wall)}
         planner.plan(m, kf.keyframe_id, Pose2(0.0, 0.0, 1.0), 100.0, **live)

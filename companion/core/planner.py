@@ -1227,23 +1227,21 @@ class FrontierPlanner:
         return float(np.hypot(*(point - here))) <= radius_m and self._speed_mps <= self.params.corner_speed_mps
 
     def _fail_keyframe(
-        self, local_map: LocalMap, keyframe_id: int, stamp_s: float, at_origin: bool = False, size_m: float = 0.0
+        self, local_map: LocalMap, keyframe_id: int, stamp_s: float, size_m: float, at_origin: bool = False
     ) -> None:
         for i in self._targets(local_map, keyframe_id, size_m, aside_too=True):
             self._failed(FrontierKey(keyframe_id, int(i)), stamp_s, at_origin)
 
-    def _targets(
-        self, local_map: LocalMap, keyframe_id: int, size_m: float = 0.0, aside_too: bool = False
-    ) -> list[int]:
+    def _targets(self, local_map: LocalMap, keyframe_id: int, size_m: float, aside_too: bool = False) -> list[int]:
         """A keyframe's open frontier vertices whose runs are at least ``size_m`` long (and at
-        least the fragment size: 0 asks for fragments too), not set aside (unless ``aside_too``)."""
+        least the fragment size), not set aside (unless ``aside_too``)."""
         idx = targetable_indices(local_map.keyframes[keyframe_id], max(size_m, self.params.fragment_size_m))
         return [int(i) for i in idx if aside_too or FrontierKey(keyframe_id, int(i)) not in self.set_aside]
 
     def _has_targets(self, local_map: LocalMap, keyframe_id: int, size_m: float) -> bool:
         return bool(self._targets(local_map, keyframe_id, size_m))
 
-    def _has_live_targets(self, local_map: LocalMap, keyframe_id: int, size_m: float = 0.0) -> bool:
+    def _has_live_targets(self, local_map: LocalMap, keyframe_id: int, size_m: float) -> bool:
         """Open frontiers worth a flight once views along the pose graph are checked too, and
         slivers judged (a stale frontier costs a look, not a flight)."""
         if not self._has_targets(local_map, keyframe_id, size_m):
