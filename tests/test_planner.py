@@ -1035,3 +1035,38 @@ def test_a_frontier_ranked_low_by_heading_is_taken_straight_when_the_best_have_n
         assert chosen is not None and chosen.path is None  # straight
         vertex = kf.polygon.vertices_xy[chosen.key.index]
         assert math.atan2(vertex[1], vertex[0]) < -0.45  # the frontier beyond the wall's end
+
+
+def test_keyframes_tried_in_vain_one_after_another_wait_behind_the_others():
+    """Hovering at a door, the vehicle took keyframe after keyframe on one spot, each holding the
+    same frontier out of reach through it. The route went to each in turn, found it out of reach
+    from its origin (one try per cooldown), and went back to the one tried before: apartment
+    seed 1 hovered so for 30 s. Every keyframe tried in vain waits behind the keyframes not
+    tried, so the route goes on to C's open frontiers 20 m away."""
+    ranges = 1.0 / np.cos(BEARINGS)  # a wall 1 m ahead, with a crack seen through to 5 m
+    ranges[(BEARINGS > 0.25) & (BEARINGS < 0.3)] = 5.0
+    door = scan_to_polygon(
+        DepthScan(0.0, BEARINGS, ranges, 5.0),
+        PolygonParams(side_frontier_spacing_m=0.0, occlusion_frontier_spacing_m=0.0),
+    )
+    m = LocalMap()
+    a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), door)
+    b = m.add_keyframe(1.0, Pose2(0.05, 0.0, 0.0), door, (a.keyframe_id, Pose2(0.05, 0.0, 0.0)))
+    scan_5m = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+    c = m.add_keyframe(2.0, Pose2(20.05, 0.0, 0.0), scan_to_polygon(scan_5m), (b.keyframe_id, Pose2(20.0, 0.0, 0.0)))
+    for kf in (a, b):  # only the frontier beyond the crack is left open
+        idx = np.flatnonzero(kf.kinds == VertexKind.FRONTIER)
+        m.close_frontiers(kf.keyframe_id, idx[np.hypot(*kf.polygon.vertices_xy[idx].T) < 3.0])
+    params = dataclasses.replace(PlannerParams(), approach_gain_m=10.0)  # no step nearer the crack
+    assert all(FrontierPlanner(params)._targets(m, kf.keyframe_id, params.min_frontier_size_m) for kf in (a, b, c))
+    planner = FrontierPlanner(params)
+    frame, targets = a.keyframe_id, []
+    for step in range(12):
+        here = Pose2(0.0, 0.0, 0.0) if frame == a.keyframe_id else Pose2(-0.05, 0.0, 0.0)
+        decision = planner.plan(m, frame, here, 100.0 + 0.1 * step)
+        frame = decision.relocalize_to if decision.relocalize_to is not None else frame
+        if planner.route is not None:
+            targets.append(planner.route.target_keyframe)
+    # A was tried (and its route ended) within the first step; B the next; then C, not A again.
+    assert sorted(k.keyframe_id for k in planner.attempts) == [a.keyframe_id, b.keyframe_id]
+    assert targets[0] == b.keyframe_id and set(targets[1:]) == {c.keyframe_id}

@@ -274,7 +274,8 @@ class FrontierPlanner:
     _progress_hops: int = 0  # fewest route keyframes left to the progress target so far
     _leg: _Leg | None = None
     _replans: _Replans | None = None
-    _tried_in_vain: int | None = None  # keyframe whose frontiers were last tried from it in vain
+    # keyframe -> when its frontiers were last tried in vain (from its origin, or no route left)
+    _tried_in_vain: dict[int, float] = field(default_factory=dict)
     _stall_noted: bool = False  # see note_stall
     _stalled: bool = False  # this plan's: the first leg or goal it checks is blocked
     _arrived_at: int | None = None  # route keyframe last arrived at (its origin, or its leg's end)
@@ -1005,7 +1006,7 @@ class FrontierPlanner:
             if self._off_surfaces(local_map, frame_id, Pose2.identity(), idx, always=True).size == 0:
                 return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
             self._fail_keyframe(local_map, frame_id, stamp_s, at_origin=True, size_m=route.size_m)
-            self._tried_in_vain = frame_id
+            self._tried_in_vain[frame_id] = stamp_s
             self.route = None
             # Out of reach from here (seen through a door at an angle, say): before leaving, go as
             # near as the free space leads and look again; a new view there may open the way.
@@ -1063,7 +1064,7 @@ class FrontierPlanner:
                 self.route = self._find_route(local_map, frame_id, route.target_keyframe, route.size_m)
                 if self.route is None:
                     self._fail_keyframe(local_map, route.target_keyframe, stamp_s, size_m=route.size_m)
-                    self._tried_in_vain = route.target_keyframe
+                    self._tried_in_vain[route.target_keyframe] = stamp_s
             return Decision(Mode.BACKTRACKING, Target(vehicle.x_m, vehicle.y_m, vehicle.yaw_rad))
         del route.keyframes[:skip]
         leg = self._leg
@@ -1290,11 +1291,15 @@ class FrontierPlanner:
         # Nearest first: each candidate is checked through the graph before a route is planned to
         # it (a stale frontier closed there costs a look, not a flight); the ones beyond the
         # first reachable target wait until they are the nearest.
-        # The keyframe just tried in vain from its origin goes last: its next try should come
-        # after the others (a blocked goal's cooldown over), not at once from the same spot.
-        order = [k for k in local_map.graph.order_from(frame_id) if k != self._tried_in_vain]
-        if self._tried_in_vain in local_map.keyframes:
-            order.append(self._tried_in_vain)
+        # Keyframes tried in vain (from their origins, or with no route left) go last, oldest try
+        # first: the next try should come after the others (a blocked goal's cooldown over), not
+        # at once from the same spot. With only the last one put last, the route went back and
+        # forth between two keyframes taken on one spot by a door, each tried in vain, for 30 s
+        # (apartment seed 1): each try counts once per cooldown, so neither was set aside.
+        order = [k for k in local_map.graph.order_from(frame_id) if k not in self._tried_in_vain]
+        order += sorted(
+            (k for k in self._tried_in_vain if k in local_map.keyframes), key=lambda k: self._tried_in_vain[k]
+        )
         if reach_m is not None:
             near = self._keyframes_within(local_map, frame_id, reach_m)
             order = [k for k in order if k in near]
