@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from companion.core.fov_polygon import VertexKind
-from companion.core.frontiers import run_sizes_m
+from companion.core.frontiers import run_brackets, run_sizes_m, walled_runs
 
 F, W, FREE = VertexKind.FRONTIER, VertexKind.OBSTACLE, VertexKind.FREE  # W: a wall (obstacle)
 
@@ -43,3 +43,22 @@ def test_an_all_open_ring_spans_its_perimeter():
     square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
     sizes = run_sizes_m(np.full(4, F, dtype=np.int8), square)
     assert np.allclose(sizes, 4.0)
+
+
+def test_a_run_between_two_walls_is_walled_one_beside_seen_space_is_not():
+    """A gap between walls (a corridor seen end-on, a door) may be the way on however short its
+    run; a run beside space other views saw is a remnant of what they saw. The ring wraps: the
+    run at its end lies between the last wall and the first."""
+    kinds = np.array([F, W, F, F, W, FREE, F, W, W, F], dtype=np.int8)
+    walled = walled_runs(kinds)
+    assert walled.tolist() == [True, False, True, True, False, False, False, False, False, True]
+    assert not walled_runs(np.full(4, F, dtype=np.int8)).any()  # no wall at all: nothing brackets it
+    assert not walled_runs(np.full(4, W, dtype=np.int8)).any()
+
+
+def test_each_open_vertex_knows_the_vertices_just_before_and_after_its_run():
+    kinds = np.array([F, W, F, F, W, FREE, F, W, W, F], dtype=np.int8)
+    before, after = run_brackets(kinds)
+    assert before.tolist() == [8, -1, 1, 1, -1, -1, 5, -1, -1, 8]
+    assert after.tolist() == [1, -1, 4, 4, -1, -1, 7, -1, -1, 1]
+    assert (run_brackets(np.full(3, F, dtype=np.int8))[0] == -1).all()

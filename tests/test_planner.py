@@ -219,24 +219,36 @@ def test_a_goal_is_not_dropped_on_the_spot_it_was_taken_unless_the_newest_scan_b
     assert planner.goal is None or planner.goal.key != key  # the newest scan sees it blocked
 
 
-def _fragment_here_run_there(open_there: int) -> tuple[LocalMap, Keyframe, Keyframe]:
+def _fragment_here_run_there(
+    open_there: int, at_side: bool = False, beside_seen: bool = False
+) -> tuple[LocalMap, Keyframe, Keyframe]:
     """Keyframe A sees 5 m of free space ahead, every frontier vertex closed as a wall but one in
     the middle of its range arc: a gap seen through, whose run spans half of each edge (about
-    0.37 m; the arc's vertices lie about 0.37 m apart). Keyframe C, 40 m on past B (which sees
-    nothing open), is closed the same way but for ``open_there`` vertices."""
+    0.37 m; the arc's vertices lie about 0.37 m apart). Or (``at_side``) but one on its field of
+    view's side, 0.4 m from the next (a run of 0.4 m, not at the range limit); ``beside_seen``:
+    the arc's vertex before it closed as seen, not as a wall. Keyframe C, 40 m
+    on past B (which sees nothing open), is closed the same way but for ``open_there`` vertices
+    of its arc."""
     scan_5m = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
     m = LocalMap()
 
-    def add(stamp_s: float, y_m: float, open_vertices: int) -> Keyframe:
+    def add(stamp_s: float, y_m: float, open_vertices: int, side: bool = False, seen: bool = False) -> Keyframe:
         parent = None if not m.keyframes else (max(m.keyframes), Pose2(0.0, 20.0, 0.0))
-        kf = m.add_keyframe(stamp_s, Pose2(0.0, y_m, 0.0), scan_to_polygon(scan_5m), parent)
+        polygon = scan_to_polygon(scan_5m, PolygonParams(side_frontier_spacing_m=0.4 if side else 1.0))
+        kf = m.add_keyframe(stamp_s, Pose2(0.0, y_m, 0.0), polygon, parent)
         idx = np.flatnonzero(kf.kinds == VertexKind.FRONTIER)
         arc = idx[np.hypot(*kf.polygon.vertices_xy[idx].T) > 4.9]
-        mid = arc.size // 2 - open_vertices // 2
-        m.close_frontiers(kf.keyframe_id, np.setdiff1d(idx, arc[mid : mid + open_vertices]), VertexKind.OBSTACLE)
+        if side:
+            keep = idx[np.argmin(np.abs(np.hypot(*kf.polygon.vertices_xy[idx].T) - 2.5))][None]
+        else:
+            mid = arc.size // 2 - open_vertices // 2
+            keep = arc[mid : mid + open_vertices]
+            if seen:
+                m.close_frontiers(kf.keyframe_id, arc[mid - 1 : mid])
+        m.close_frontiers(kf.keyframe_id, np.setdiff1d(idx, keep), VertexKind.OBSTACLE)
         return kf
 
-    a, _, c = add(0.0, 0.0, 1), add(1.0, 20.0, 0), add(2.0, 40.0, open_there)
+    a, _, c = add(0.0, 0.0, 1, at_side, beside_seen), add(1.0, 20.0, 0), add(2.0, 40.0, open_there)
     return m, a, c
 
 
@@ -244,9 +256,9 @@ def test_a_frontier_fragment_waits_until_no_longer_run_is_left_and_is_near():
     """A fragment (a run under 0.6 m) in view is passed over while a longer run is left anywhere:
     the vehicle flies back along the pose graph to C's 0.75 m run instead. With nothing longer
     left it is flown to from within 4 m (a fragment may be the way on: never flown to, runs under
-    0.8 m ended a spiral corridor's exploration at coverage 0.13), not from 20 m away, where
-    exploration is complete. Without loop closures, where 0.6 m was not measured, 0.3 m holds
-    (companion.app.planner_params)."""
+    0.8 m ended a spiral corridor's exploration at coverage 0.13), and from farther only if it
+    lies at the sensor's range limit (a corridor seen end-on). Without loop closures, where
+    0.6 m was not measured, 0.3 m holds (companion.app.planner_params)."""
     from companion.app import planner_params
 
     m, a, c = _fragment_here_run_there(2)
@@ -264,10 +276,26 @@ def test_a_frontier_fragment_waits_until_no_longer_run_is_left_and_is_near():
     decision = FrontierPlanner(params).plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0)
     assert decision.mode is Mode.EXPLORING and decision.goal is not None
     assert decision.goal.keyframe_id == a.keyframe_id and sizes[decision.goal.index] > 0.0
-    b = m.graph.path(a.keyframe_id, c.keyframe_id)[1]  # 20 m from A
-    assert FrontierPlanner(params).plan(m, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
     never = dataclasses.replace(params, fragment_size_m=params.min_frontier_size_m)  # no fragment ever
     assert FrontierPlanner(never).plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
+    # From B, 20 m away: a fragment on the field of view's side is not flown to (exploration is
+    # complete), nor one at the range limit beside space seen; one at the range limit between
+    # walls is (free space goes on beyond it: a corridor seen end-on), unless that is off.
+    b = m.graph.path(a.keyframe_id, c.keyframe_id)[1]
+    m_side, a_side, _ = _fragment_here_run_there(0, at_side=True)
+    side_sizes = run_sizes_m(a_side.kinds, a_side.polygon.vertices_xy)
+    assert params.fragment_size_m < side_sizes.max() < params.min_frontier_size_m
+    assert not a_side.polygon.at_range_limit[np.argmax(side_sizes)]
+    assert FrontierPlanner(params).plan(m_side, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
+    m_seen, a_seen, _ = _fragment_here_run_there(0, beside_seen=True)
+    open_seen = np.flatnonzero(a_seen.kinds == VertexKind.FRONTIER)
+    assert open_seen.size == 1 and a_seen.polygon.at_range_limit[open_seen[0]]
+    assert FrontierPlanner(params).plan(m_seen, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
+    far = FrontierPlanner(params)
+    assert far.plan(m, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.BACKTRACKING
+    assert far.route is not None and far.route.target_keyframe == a.keyframe_id
+    near_only = dataclasses.replace(params, far_range_limit_fragments=False)
+    assert FrontierPlanner(near_only).plan(m, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
 
 
 def test_a_goal_whose_run_other_views_closed_down_to_a_remnant_is_still_flown_to():
@@ -1070,3 +1098,39 @@ def test_keyframes_tried_in_vain_one_after_another_wait_behind_the_others():
     # A was tried (and its route ended) within the first step; B the next; then C, not A again.
     assert sorted(k.keyframe_id for k in planner.attempts) == [a.keyframe_id, b.keyframe_id]
     assert targets[0] == b.keyframe_id and set(targets[1:]) == {c.keyframe_id}
+
+
+@pytest.mark.parametrize("scene", ["corridor", "missed_returns", "corner"])
+def test_a_far_range_limit_fragment_counts_only_in_an_opening_between_parallel_walls(scene):
+    """Once nothing nearer is left, a range-limit fragment is flown to from anywhere only if it
+    lies in an opening: the walls its bracketing vertices closed on at least 0.6 m apart and
+    about parallel (a corridor seen end-on, a door). Returns missed on one wall (both on the
+    same wall) and a room's far corner (walls meeting) are remnants, not the way on. Here the
+    range arc is closed as walls but for two vertices in its middle (as other views' walls
+    close it): a fragment every time, so only the opening test tells them apart."""
+    n = 181
+    bearings = np.linspace(-math.pi / 4, math.pi / 4, n)
+    sin = np.maximum(np.abs(np.sin(bearings)), 1e-9)
+    if scene == "corridor":  # side walls 0.6 m each side, seen end-on: open past 5 m in the middle
+        ranges = 0.6 / sin
+    elif scene == "missed_returns":  # a wall across at 4.9 m, a dark patch on it gives no return
+        ranges = 4.9 / np.cos(bearings)
+        ranges[np.abs(bearings) < 0.06] = 9.0
+    else:  # walls at x = 4.5 and y = 2.5 meet 5.15 m away: out of range round the corner
+        ranges = np.minimum(4.5 / np.cos(bearings), np.where(bearings > 0, 2.5 / sin, 9.0))
+    polygon = scan_to_polygon(DepthScan(0.0, bearings, np.minimum(ranges, 9.0), 5.0))
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), polygon)
+    rl = np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & kf.polygon.at_range_limit)
+    if scene == "corner":  # the arc round the corner ahead-left (not the one past x = 4.5 on the right)
+        rl = rl[kf.polygon.vertices_xy[rl, 1] > 0.0]
+    assert rl.size >= 2
+    keep = rl[rl.size // 2 - 1 : rl.size // 2 + 1]
+    idx = np.flatnonzero(kf.kinds == VertexKind.FRONTIER)
+    m.close_frontiers(kf.keyframe_id, np.setdiff1d(idx, keep), VertexKind.OBSTACLE)
+    params = PlannerParams()
+    size = run_sizes_m(kf.kinds, kf.polygon.vertices_xy)[keep[0]]
+    assert params.fragment_size_m <= size < params.min_frontier_size_m
+    planner = FrontierPlanner(params)
+    found = planner._targets(m, kf.keyframe_id, params.fragment_size_m, range_limit_only=True)
+    assert found == (keep.tolist() if scene == "corridor" else [])

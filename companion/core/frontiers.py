@@ -60,6 +60,52 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     return sizes
 
 
+def walled_runs(kinds: NDArray[np.int8]) -> NDArray[np.bool_]:
+    """For each open frontier vertex, whether its run lies between two obstacle vertices (a gap
+    between walls: a door, or a corridor seen end-on), not beside space other views saw."""
+    is_open = kinds == VertexKind.FRONTIER
+    out = np.zeros(kinds.size, dtype=bool)
+    if not is_open.any() or is_open.all():
+        return out
+    order = np.roll(np.arange(kinds.size), -int(np.flatnonzero(~is_open)[0]))
+    run_open = is_open[order]
+    kinds_o = kinds[order]
+    first = run_open & ~np.roll(run_open, 1)
+    last = run_open & ~np.roll(run_open, -1)
+    run = np.cumsum(first) * run_open
+    count = int(run.max()) + 1
+    before = np.zeros(count, dtype=bool)
+    after = np.zeros(count, dtype=bool)
+    before[run[first]] = np.roll(kinds_o, 1)[first] == VertexKind.OBSTACLE
+    after[run[last]] = np.roll(kinds_o, -1)[last] == VertexKind.OBSTACLE
+    walled = before & after
+    out[order[run_open]] = walled[run[run_open]]
+    return out
+
+
+def run_brackets(kinds: NDArray[np.int8]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """For each open frontier vertex, the vertex just before its run and the one just after it
+    (-1 for other vertices, and when every vertex is open)."""
+    is_open = kinds == VertexKind.FRONTIER
+    before = np.full(kinds.size, -1, dtype=np.intp)
+    after = np.full(kinds.size, -1, dtype=np.intp)
+    if not is_open.any() or is_open.all():
+        return before, after
+    order = np.roll(np.arange(kinds.size), -int(np.flatnonzero(~is_open)[0]))
+    run_open = is_open[order]
+    first = run_open & ~np.roll(run_open, 1)
+    last = run_open & ~np.roll(run_open, -1)
+    run = np.cumsum(first) * run_open
+    count = int(run.max()) + 1
+    b = np.zeros(count, dtype=np.intp)
+    a = np.zeros(count, dtype=np.intp)
+    b[run[first]] = np.roll(order, 1)[first]
+    a[run[last]] = np.roll(order, -1)[last]
+    before[order[run_open]] = b[run[run_open]]
+    after[order[run_open]] = a[run[run_open]]
+    return before, after
+
+
 def targetable_indices(kf: Keyframe, min_size_m: float) -> NDArray[np.intp]:
     """Open frontier vertices of a keyframe whose run is at least ``min_size_m`` long (memoised
     on the keyframe until a vertex closes: the planner asks for every keyframe it walks past)."""
