@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import shapely
 
-from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
+from companion.core.fov_polygon import FovPolygon, PolygonParams, VertexKind, scan_to_polygon
 from companion.core.frontiers import FrontierKey, run_sizes_m, targetable_indices
 from companion.core.geometry import Pose2
 from companion.core.local_map import Keyframe, LocalMap, MapParams
@@ -279,8 +279,8 @@ def test_a_frontier_fragment_waits_until_no_longer_run_is_left_and_is_near():
     never = dataclasses.replace(params, fragment_size_m=params.min_frontier_size_m)  # no fragment ever
     assert FrontierPlanner(never).plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
     # From B, 20 m away: a fragment on the field of view's side is not flown to (exploration is
-    # complete), nor one at the range limit beside space seen; one at the range limit between
-    # walls is (free space goes on beyond it: a corridor seen end-on), unless that is off.
+    # complete), nor one at the range limit beside space seen, nor A's, whose closed neighbours
+    # lie by no wall (not an opening: see the test below for one that is).
     b = m.graph.path(a.keyframe_id, c.keyframe_id)[1]
     m_side, a_side, _ = _fragment_here_run_there(0, at_side=True)
     side_sizes = run_sizes_m(a_side.kinds, a_side.polygon.vertices_xy)
@@ -291,11 +291,7 @@ def test_a_frontier_fragment_waits_until_no_longer_run_is_left_and_is_near():
     open_seen = np.flatnonzero(a_seen.kinds == VertexKind.FRONTIER)
     assert open_seen.size == 1 and a_seen.polygon.at_range_limit[open_seen[0]]
     assert FrontierPlanner(params).plan(m_seen, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
-    far = FrontierPlanner(params)
-    assert far.plan(m, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.BACKTRACKING
-    assert far.route is not None and far.route.target_keyframe == a.keyframe_id
-    near_only = dataclasses.replace(params, far_range_limit_fragments=False)
-    assert FrontierPlanner(near_only).plan(m, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
+    assert FrontierPlanner(params).plan(m, b, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
 
 
 def test_a_goal_whose_run_other_views_closed_down_to_a_remnant_is_still_flown_to():
@@ -1134,3 +1130,21 @@ def test_a_far_range_limit_fragment_counts_only_in_an_opening_between_parallel_w
     planner = FrontierPlanner(params)
     found = planner._targets(m, kf.keyframe_id, params.fragment_size_m, range_limit_only=True)
     assert found == (keep.tolist() if scene == "corridor" else [])
+    # From a keyframe 20 m back along the graph, nothing else open: flown to only in the corridor.
+    far_id = m.add_keyframe(
+        1.0, Pose2(-20.0, 0.0, 0.0), _walled_in_polygon(), (kf.keyframe_id, Pose2(-20.0, 0.0, 0.0))
+    ).keyframe_id
+    far = FrontierPlanner(params)
+    decision = far.plan(m, far_id, Pose2(0.0, 0.0, 0.0), 0.0)
+    if scene == "corridor":
+        assert decision.mode is Mode.BACKTRACKING and far.route is not None
+        assert far.route.target_keyframe == kf.keyframe_id
+        off = dataclasses.replace(params, far_range_limit_fragments=False)
+        assert FrontierPlanner(off).plan(m, far_id, Pose2(0.0, 0.0, 0.0), 0.0).mode is Mode.COMPLETE
+    else:
+        assert decision.mode is Mode.COMPLETE
+
+
+def _walled_in_polygon() -> FovPolygon:
+    """A view of a wall 1 m ahead all across: no frontier run in it worth a flight."""
+    return scan_to_polygon(DepthScan(0.0, BEARINGS, 1.0 / np.cos(BEARINGS), 5.0))

@@ -72,10 +72,11 @@ class PlannerParams:
     # variant) ended `complete` at coverage 0.78, 5.5 m from it. An opening: the run lies
     # between two vertices closed as walls, and the walls they lie by (within
     # ``opening_wall_m``, as views within ``fragment_reach_hops`` place them) are about
-    # parallel (``opening_parallel_sin``) and at least ``min_frontier_size_m`` apart: a
-    # corridor, a door; not returns missed on one wall, nor a room's far corner. Flown to from
-    # anywhere, every range-limit fragment cost +7.4 % (those between walls +4.3 %): they are
-    # mostly such remnants, by the building's outer wall or in corners.
+    # parallel (``opening_parallel_sin``) and at least ``min_frontier_size_m`` apart across
+    # their lines: a corridor seen end-on; not a gap in one wall (returns missed on a wall at
+    # the range limit), nor a room's far corner. Flown to from anywhere, every range-limit
+    # fragment cost +7.4 % (those between walls +4.3 %): they are mostly such remnants, by the
+    # building's outer wall or in corners.
     far_range_limit_fragments: bool = True
     opening_wall_m: float = 0.5
     opening_parallel_sin: float = 0.5  # the sine of the angle between the two walls, at most
@@ -1268,30 +1269,35 @@ class FrontierPlanner:
 
     def _openings(self, local_map: LocalMap, keyframe_id: int, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
         """Which of these walled runs' vertices lie in an opening (see ``far_range_limit_fragments``).
-        A run whose bracketing vertices have no wall within ``opening_wall_m`` cannot be told
-        apart, and counts as one."""
+        A run whose bracketing vertices have no wall within ``opening_wall_m`` does not: a lone
+        return on a wall at the range limit, every other ray missing it (campus seed 7 flew
+        27 keyframes back for one by the building's outer wall)."""
         kf = local_map.keyframes[keyframe_id]
         hops = self.params.fragment_reach_hops
         reach = local_map.graph.reached(keyframe_id, hops)
         near = reach.hops <= hops
         walls = [local_map.keyframes[int(k)].walls.reshape(-1, 2) for k in reach.ids[near]]
         if not any(w.shape[0] for w in walls):
-            return np.ones(idx.size, dtype=bool)
+            return np.zeros(idx.size, dtype=bool)
         segments = apply_grouped(reach.poses[near], walls).reshape(-1, 2, 2)
         before, after = run_brackets(kf.kinds)
         ends = kf.polygon.vertices_xy[np.concatenate((before[idx], after[idx]))]
         dist = point_segment_distances(ends, segments)  # (2K, S)
         nearest = np.argmin(dist, axis=1)
         found = dist[np.arange(ends.shape[0]), nearest] <= self.params.opening_wall_m
-        lines = shapely.linestrings(segments[nearest])
         k = idx.size
-        apart = shapely.distance(lines[:k], lines[k:])
-        # and the two walls about parallel: walls meeting at a corner bound a pocket, not a way on
-        d = segments[nearest, 1] - segments[nearest, 0]
+        # Two walls about parallel (walls meeting at a corner bound a pocket), each off the
+        # other's line by the opening's width: a gap in one wall at the range limit is as often
+        # returns missed on it (a wall 4.97 m off, every other ray returning) as a door.
+        seg = segments[nearest]
+        d = seg[:, 1] - seg[:, 0]
         d /= np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)[:, None]
         parallel = np.abs(d[:k, 0] * d[k:, 1] - d[:k, 1] * d[k:, 0]) <= self.params.opening_parallel_sin
+        mid = seg.mean(axis=1)
+        gap = mid[k:] - mid[:k]
+        apart = np.abs(d[:k, 0] * gap[:, 1] - d[:k, 1] * gap[:, 0])  # across the first wall's line
         opening = (apart >= self.params.min_frontier_size_m) & parallel
-        return np.asarray(~(found[:k] & found[k:]) | opening, dtype=bool)
+        return np.asarray(found[:k] & found[k:] & opening, dtype=bool)
 
     def _has_targets(
         self, local_map: LocalMap, keyframe_id: int, size_m: float, range_limit_only: bool = False
