@@ -20,6 +20,35 @@ class FrontierKey:
     index: int
 
 
+@dataclass(frozen=True, slots=True)
+class _RingRuns:
+    """The runs of open vertices of a ring that has a closed vertex, walked from one so that no
+    run wraps round: ``order[j]`` is the j-th vertex of that walk, and in walk order ``is_open``,
+    ``first`` and ``last`` mark open vertices, runs' first and last ones, and ``run`` numbers the
+    runs 1, 2, ... (0 for closed vertices)."""
+
+    order: NDArray[np.intp]
+    is_open: NDArray[np.bool_]
+    first: NDArray[np.bool_]
+    last: NDArray[np.bool_]
+    run: NDArray[np.intp]
+
+    @property
+    def count(self) -> int:
+        """The number of runs, plus one (run numbers index arrays of this size)."""
+        return int(self.run.max()) + 1
+
+
+def _ring_runs(is_open: NDArray[np.bool_]) -> _RingRuns:
+    """The runs of ``is_open`` (some vertex must be closed)."""
+    order = np.roll(np.arange(is_open.size), -int(np.flatnonzero(~is_open)[0]))
+    run_open = is_open[order]
+    first = run_open & ~np.roll(run_open, 1)
+    last = run_open & ~np.roll(run_open, -1)
+    run = np.where(run_open, np.cumsum(first), 0).astype(np.intp)
+    return _RingRuns(order, run_open, first, last, run)
+
+
 def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     """For each open frontier vertex, the length of frontier its run of consecutive open frontier
     vertices spans (0 for other vertices). Tiny runs are fragments not worth a flight."""
@@ -32,55 +61,28 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     if is_open.all():
         sizes[:] = edge_len.sum()
         return sizes
-    # Walk the ring from a closed vertex, so no run wraps round; runs numbered 1, 2, ... in it.
-    order = np.roll(np.arange(n), -int(np.flatnonzero(~is_open)[0]))
-    run_open = is_open[order]
-    run_len = edge_len[order]
-    first = run_open & ~np.roll(run_open, 1)
-    run = np.cumsum(first) * run_open
-    last = run_open & ~np.roll(run_open, -1)
+    r = _ring_runs(is_open)
+    run_len = edge_len[r.order]
     # Edges inside the run, and half of those into and out of it (they end at a vertex that is
     # not open): a lone open vertex between walls or seen space spans half of each.
-    count = int(run.max()) + 1
-    inside = np.bincount(run[run_open & ~last], run_len[run_open & ~last], minlength=count)
+    count = r.count
+    inner = r.is_open & ~r.last
+    inside = np.bincount(r.run[inner], run_len[inner], minlength=count)
     into = np.zeros(count)
-    into[run[first]] = np.roll(run_len, 1)[first]
+    into[r.run[r.first]] = np.roll(run_len, 1)[r.first]
     out = np.zeros(count)
-    out[run[last]] = run_len[last]
+    out[r.run[r.last]] = run_len[r.last]
     # A lone open vertex between two closed as seen (other views saw the space on both sides of
     # it; the view's own origin, where the vehicle stood, counts as seen) spans nothing: two in
     # three flights to such vertices found nothing. Beside a wall (a gap seen through, or a vertex
     # closed as the wall it lies on) it spans half of each edge.
-    kinds_o = kinds[order]
-    seen_both = first & last & (np.roll(kinds_o, 1) == VertexKind.FREE) & (np.roll(kinds_o, -1) == VertexKind.FREE)
-    into[run[seen_both]] = 0.0
-    out[run[seen_both]] = 0.0
+    kinds_o = kinds[r.order]
+    seen_both = r.first & r.last & (np.roll(kinds_o, 1) == VertexKind.FREE) & (np.roll(kinds_o, -1) == VertexKind.FREE)
+    into[r.run[seen_both]] = 0.0
+    out[r.run[seen_both]] = 0.0
     total = 0.5 * (into + out) + inside
-    sizes[order[run_open]] = total[run[run_open]]
+    sizes[r.order[r.is_open]] = total[r.run[r.is_open]]
     return sizes
-
-
-def walled_runs(kinds: NDArray[np.int8]) -> NDArray[np.bool_]:
-    """For each open frontier vertex, whether its run lies between two obstacle vertices (a gap
-    between walls: a door, or a corridor seen end-on), not beside space other views saw."""
-    is_open = kinds == VertexKind.FRONTIER
-    out = np.zeros(kinds.size, dtype=bool)
-    if not is_open.any() or is_open.all():
-        return out
-    order = np.roll(np.arange(kinds.size), -int(np.flatnonzero(~is_open)[0]))
-    run_open = is_open[order]
-    kinds_o = kinds[order]
-    first = run_open & ~np.roll(run_open, 1)
-    last = run_open & ~np.roll(run_open, -1)
-    run = np.cumsum(first) * run_open
-    count = int(run.max()) + 1
-    before = np.zeros(count, dtype=bool)
-    after = np.zeros(count, dtype=bool)
-    before[run[first]] = np.roll(kinds_o, 1)[first] == VertexKind.OBSTACLE
-    after[run[last]] = np.roll(kinds_o, -1)[last] == VertexKind.OBSTACLE
-    walled = before & after
-    out[order[run_open]] = walled[run[run_open]]
-    return out
 
 
 def run_brackets(kinds: NDArray[np.int8]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -91,19 +93,23 @@ def run_brackets(kinds: NDArray[np.int8]) -> tuple[NDArray[np.intp], NDArray[np.
     after = np.full(kinds.size, -1, dtype=np.intp)
     if not is_open.any() or is_open.all():
         return before, after
-    order = np.roll(np.arange(kinds.size), -int(np.flatnonzero(~is_open)[0]))
-    run_open = is_open[order]
-    first = run_open & ~np.roll(run_open, 1)
-    last = run_open & ~np.roll(run_open, -1)
-    run = np.cumsum(first) * run_open
-    count = int(run.max()) + 1
-    b = np.zeros(count, dtype=np.intp)
-    a = np.zeros(count, dtype=np.intp)
-    b[run[first]] = np.roll(order, 1)[first]
-    a[run[last]] = np.roll(order, -1)[last]
-    before[order[run_open]] = b[run[run_open]]
-    after[order[run_open]] = a[run[run_open]]
+    r = _ring_runs(is_open)
+    b = np.zeros(r.count, dtype=np.intp)
+    a = np.zeros(r.count, dtype=np.intp)
+    b[r.run[r.first]] = np.roll(r.order, 1)[r.first]
+    a[r.run[r.last]] = np.roll(r.order, -1)[r.last]
+    before[r.order[r.is_open]] = b[r.run[r.is_open]]
+    after[r.order[r.is_open]] = a[r.run[r.is_open]]
     return before, after
+
+
+def walled_runs(kinds: NDArray[np.int8]) -> NDArray[np.bool_]:
+    """For each open frontier vertex, whether its run lies between two obstacle vertices (a gap
+    between walls: a door, or a corridor seen end-on), not beside space other views saw."""
+    before, after = run_brackets(kinds)
+    bracketed = (before >= 0) & (after >= 0)
+    walled = bracketed & (kinds[before] == VertexKind.OBSTACLE) & (kinds[after] == VertexKind.OBSTACLE)
+    return np.asarray(walled, dtype=bool)
 
 
 def targetable_indices(kf: Keyframe, min_size_m: float) -> NDArray[np.intp]:
