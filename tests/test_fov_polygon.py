@@ -158,6 +158,49 @@ def test_a_door_in_a_wall_seen_at_a_grazing_angle_stays_an_occlusion():
     assert _shadow_vertices(poly, (2.0, 3.4)).shape[0] > 0
 
 
+def _wall_leaving_the_range_scan(door_x0: float | None) -> DepthScan:
+    """A 0.15 m thick wall along y = 0.45 on the left, seen from the origin looking along x: its
+    returns jump 0.5-0.8 m apart as it leaves the 5 m range past x = 4 m (the last ray before the
+    limit lands at x = 3.99, the one before at 3.26); with an optional 1 m door from ``door_x0``."""
+    y, t = 0.45, 0.15
+    if door_x0 is None:
+        walls = [((-1.0, y), (30.0, y))]
+    else:
+        x1 = door_x0 + 1.0
+        walls = [((-1.0, y), (door_x0, y)), ((x1, y), (30.0, y)), ((door_x0, y), (door_x0, y + t))]
+        walls += [((x1, y), (x1, y + t)), ((-1.0, y + t), (door_x0, y + t)), ((x1, y + t), (30.0, y + t))]
+    r = cast_rays(np.zeros(2), BEARINGS, np.array([*walls, ((-1.0, 3.0), (30.0, 3.0))], dtype=float), 5.0)
+    return scan(np.where(np.isfinite(r), r, 5.0))
+
+
+def _shadow_xs(poly) -> list[float]:
+    """The x of every shadow-edge frontier vertex on the left (y > 0.1)."""
+    v = poly.vertices_xy
+    pick = poly.on_shadow & (poly.kinds == VertexKind.FRONTIER) & (v[:, 1] > 0.1)
+    return sorted(v[pick, 0].round(2).tolist())
+
+
+def test_a_grazing_wall_is_one_surface_up_to_its_last_return_before_the_range_limit():
+    """The jump between the wall's last two returns has no return beyond it to draw the line
+    from on that side; the two returns before it on the other side draw it: no frontier on the
+    wall's face (one there is flown to and seen as one again from each spot). Beyond the last
+    return, where the wall leaves the range, the space stays unknown."""
+    xs = _shadow_xs(scan_to_polygon(_wall_leaving_the_range_scan(None)))
+    assert xs and all(x >= 3.95 for x in xs)  # only along the ray past the last return
+    as_occlusions = _shadow_xs(
+        scan_to_polygon(_wall_leaving_the_range_scan(None), PolygonParams(grazing_max_gap_m=0.0))
+    )
+    assert any(3.2 < x < 3.95 for x in as_occlusions)
+
+
+@pytest.mark.parametrize("door_x0", [3.3, 3.5, 3.7, 3.9])
+def test_a_door_by_the_range_limit_in_a_grazing_wall_stays_an_occlusion(door_x0):
+    """The last ray before the range limit passes into a 1 m door and lands on its far jamb:
+    off the wall's line by up to its thickness, so the room behind stays behind a frontier."""
+    xs = _shadow_xs(scan_to_polygon(_wall_leaving_the_range_scan(door_x0)))
+    assert any(3.2 < x < door_x0 + 1.0 for x in xs)
+
+
 def test_invalid_returns_never_become_walls_at_zero():
     r = np.full(64, 3.0)
     r[10] = np.nan

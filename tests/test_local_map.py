@@ -453,6 +453,38 @@ def test_a_range_limit_vertex_a_little_beyond_a_neighbours_wall_closes_as_that_w
     assert closed.all() if range_limit_snap_m > 0.25 else not closed.any()
 
 
+def test_a_range_limit_vertex_past_a_walls_end_is_not_that_wall():
+    """The wider snap at the range limit reaches across a wall (drift), not along its line past
+    its end: past a jamb lies a door. A vertex in the doorway 0.27 m from the jamb's end stays
+    open; one 0.28 m beside the wall, or 0.05 m past its end, is the wall."""
+    from companion.core.local_map import _near_walls
+
+    wall = np.array([[[0.0, 0.5], [0.0, 3.0]]])  # along x = 0, its jamb's end at y = 0.5
+    pts = np.array([[-0.1, 0.25], [-0.28, 1.5], [0.1, 0.45]])
+    args = (pts, np.zeros(3, dtype=bool), wall, np.array([[-1.0, 1.0]]), 0.35, 0.1)
+    assert _near_walls(*args, 0.15)[:, 0].tolist() == [False, True, True]  # type: ignore[arg-type]
+    assert _near_walls(*args)[:, 0].all()  # type: ignore[arg-type]
+
+
+def test_only_a_range_limit_vertex_away_from_its_own_views_walls_is_bounded_past_a_walls_end():
+    """Where a view saw a wall leave its range, its range-limit vertex beside the wall's last
+    return is that wall's end in its view, and a neighbour's view of the wall may end as near:
+    it may lie any way past a wall's end. Out in the arc, away from the view's own walls (as in
+    a door seen past its jamb), it may lie at most ``wall_snap_m`` past one."""
+    from companion.core.local_map import _past_end_m
+
+    # A wall across, x = 4.8 + 0.1 y, leaves the 5 m range on the right, at about -0.4 rad.
+    wall = 4.8 / (np.cos(BEARINGS) - 0.1 * np.sin(BEARINGS))
+    m = LocalMap()
+    kf = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(DepthScan(0.0, BEARINGS, wall, 5.0)))
+    arc = np.flatnonzero(kf.polygon.at_range_limit)
+    by_the_wall = arc[kf.polygon.kinds[arc + 1] == VertexKind.OBSTACLE]  # next to the wall's last return
+    out_in_the_arc = arc[0]  # the field of view's corner, 1.7 m from the wall
+    assert by_the_wall.size == 1 and out_in_the_arc != by_the_wall[0]
+    past = _past_end_m(kf, np.array([by_the_wall[0], out_in_the_arc]), m.params)
+    assert past.tolist() == [math.inf, m.params.wall_snap_m]
+
+
 def test_a_shadow_edge_vertex_behind_the_face_of_a_wall_another_view_saw_is_not_that_wall():
     """A wall seen from above (its face at y = 0): a vertex on an occlusion's shadow edge more
     than ``wall_behind_m`` below the face (and within the snap) lies beyond the wall, hidden

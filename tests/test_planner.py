@@ -1096,19 +1096,23 @@ def test_keyframes_tried_in_vain_one_after_another_wait_behind_the_others():
     assert targets[0] == b.keyframe_id and set(targets[1:]) == {c.keyframe_id}
 
 
-@pytest.mark.parametrize("scene", ["corridor", "missed_returns", "corner"])
+@pytest.mark.parametrize("scene", ["corridor", "corridor_past_a_jamb", "missed_returns", "corner"])
 def test_a_far_range_limit_fragment_counts_only_in_an_opening_between_parallel_walls(scene):
     """Once nothing nearer is left, a range-limit fragment is flown to from anywhere only if it
-    lies in an opening: the walls its bracketing vertices closed on at least 0.6 m apart and
-    about parallel (a corridor seen end-on, a door). Returns missed on one wall (both on the
-    same wall) and a room's far corner (walls meeting) are remnants, not the way on. Here the
-    range arc is closed as walls but for two vertices in its middle (as other views' walls
-    close it): a fragment every time, so only the opening test tells them apart."""
+    lies in an opening: walls by its bracketing vertices at least 0.6 m apart and about parallel
+    (a corridor seen end-on, a door). Returns missed on one wall (both on the same wall) and a
+    room's far corner (walls meeting) are remnants, not the way on. Here the range arc is closed
+    as walls but for two vertices in its middle (as other views' walls close it): a fragment
+    every time, so only the opening test tells them apart. Any wall by each end counts, not
+    only the nearest: past a door's jamb the jamb's face is nearer than the corridor's wall."""
     n = 181
     bearings = np.linspace(-math.pi / 4, math.pi / 4, n)
     sin = np.maximum(np.abs(np.sin(bearings)), 1e-9)
     if scene == "corridor":  # side walls 0.6 m each side, seen end-on: open past 5 m in the middle
         ranges = 0.6 / sin
+    elif scene == "corridor_past_a_jamb":  # and a jamb 0.25 m deep on the right at x = 4.85
+        on_jamb = (bearings < 0.0) & (4.85 * np.tan(-bearings) >= 0.35) & (4.85 * np.tan(-bearings) <= 0.6)
+        ranges = np.where(on_jamb, 4.85 / np.cos(bearings), 0.6 / sin)
     elif scene == "missed_returns":  # a wall across at 4.9 m, a dark patch on it gives no return
         ranges = 4.9 / np.cos(bearings)
         ranges[np.abs(bearings) < 0.06] = 9.0
@@ -1129,14 +1133,15 @@ def test_a_far_range_limit_fragment_counts_only_in_an_opening_between_parallel_w
     assert params.fragment_size_m <= size < params.min_frontier_size_m
     planner = FrontierPlanner(params)
     found = planner._targets(m, kf.keyframe_id, params.fragment_size_m, range_limit_only=True)
-    assert found == (keep.tolist() if scene == "corridor" else [])
+    opening = scene.startswith("corridor")
+    assert found == (keep.tolist() if opening else [])
     # From a keyframe 20 m back along the graph, nothing else open: flown to only in the corridor.
     far_id = m.add_keyframe(
         1.0, Pose2(-20.0, 0.0, 0.0), _walled_in_polygon(), (kf.keyframe_id, Pose2(-20.0, 0.0, 0.0))
     ).keyframe_id
     far = FrontierPlanner(params)
     decision = far.plan(m, far_id, Pose2(0.0, 0.0, 0.0), 0.0)
-    if scene == "corridor":
+    if opening:
         assert decision.mode is Mode.BACKTRACKING and far.route is not None
         assert far.route.target_keyframe == kf.keyframe_id
         off = dataclasses.replace(params, far_range_limit_fragments=False)
