@@ -618,3 +618,43 @@ def test_a_view_that_disagrees_with_the_keyframe_does_not_judge_its_slivers(c_di
     assert a.kinds[2] == VertexKind.FRONTIER
     closed = m.close_slivers(a.keyframe_id, np.array([2]))
     assert closed.tolist() == [not c_disagrees]
+
+
+@pytest.mark.parametrize("misplaced_min_hops", [1, 6])
+def test_a_range_limit_vertex_by_the_end_of_a_far_views_wall_is_not_that_wall(misplaced_min_hops):
+    """A's arc (range limit, no wall beside it) lies 0.25 m behind the wall B saw across, which
+    ends at y = 0.3 (a jamb). From a view nearer along the graph than ``misplaced_min_hops``, A's
+    arc vertices along the wall are that wall. From one as far along as that, drift may have
+    slid the wall along its line: a vertex is on it only where the wall runs on past it, both
+    ways, by the chain's drift (0.4 m a hop here). The vertex 0.11 m from the jamb's end stays
+    open; those 0.49 m and more along it close."""
+    m = LocalMap(MapParams(misplaced_min_hops=misplaced_min_hops, chain_margin_per_hop_m=0.4))
+    a_id, a_pose = add_pose(m, Pose2(0.0, 0.0, 0.0), None)
+    a = m.keyframes[a_id]
+    across = 3.25 / np.cos(BEARINGS)  # a wall across at x = 4.75 from B, 1.5 m ahead ...
+    ranges = np.where(np.tan(BEARINGS) * 3.25 <= 0.3, across, 5.0)  # ... for y <= 0.3 only
+    add_pose(m, Pose2(1.5, 0.0, 0.0), (a_id, a_pose), DepthScan(0.0, BEARINGS, ranges, 5.0))
+    v = a.polygon.vertices_xy
+    arc = a.polygon.at_range_limit & (v[:, 0] > 4.9)
+    by_end = arc & (v[:, 1] < 0.3) & (v[:, 1] > 0.0)
+    along = arc & (v[:, 1] < -0.1) & (v[:, 1] > -1.0)
+    assert np.count_nonzero(by_end) == 1 and np.count_nonzero(along) >= 2
+    assert np.all(a.kinds[along] == VertexKind.OBSTACLE)
+    expected = VertexKind.FRONTIER if misplaced_min_hops == 1 else VertexKind.OBSTACLE
+    assert np.all(a.kinds[by_end] == expected)
+
+
+def test_a_wall_runs_on_along_the_edges_joined_to_it_and_no_farther():
+    """Three edges joined end to start (1 m, 2 m round a corner, 0.5 m), then one apart."""
+    from companion.core.local_map import _wall_runs
+
+    walls = np.array(
+        [
+            [[0.0, 0.0], [1.0, 0.0]],
+            [[1.0, 0.0], [1.0, 2.0]],
+            [[1.0, 2.0], [1.5, 2.0]],
+            [[3.0, 0.0], [3.0, 1.0]],
+        ]
+    )
+    assert _wall_runs(walls).tolist() == [[0.0, 2.5], [1.0, 0.5], [3.0, 0.0], [0.0, 0.0]]
+    assert _wall_runs(np.zeros((0, 2, 2))).shape == (0, 2)

@@ -40,6 +40,12 @@ class MapParams:
     # with the start turn: `complete` at coverage 0.952).
     misplaced_depth_m: float = 0.3
     misplaced_min_hops: int = 6  # nearer along the graph, drift is too small to place a view so far off
+    # A neighbour that far along may also be placed off along its own walls, which no test of
+    # disagreement sees: a range-limit vertex with no wall beside it in its own view (a doorway's)
+    # lies on such a neighbour's wall only where that wall runs on past it, both ways, by the
+    # drift its chain allows (``chain_margin_per_hop_m`` a hop). A neighbour 7 hops on, placed
+    # 0.5 m off by a loop closure, put a door's jamb across the doorway's range-limit vertex,
+    # and the room behind was never entered (lshape seed 1 in session 53's variant H).
     wall_snap_m: float = 0.15  # a frontier this close to a wall another view saw is closed
     # A vertex at the sensor's range limit (no return on its ray) closes on a neighbour's wall
     # this close: where a wall leaves the range, the last ray's limit lies on it, and neighbours
@@ -105,6 +111,7 @@ class Keyframe:
     kinds: NDArray[np.int8] = field(init=False)
     radius_m: float = field(init=False)
     walls: FloatArray = field(init=False)  # the polygon's obstacle edges (M, 2, 2), computed once
+    wall_runs: FloatArray = field(init=False)  # (M, 2): how far each edge's wall runs on before and after it
     open_edges: FloatArray = field(init=False)  # and its other edges, bordering unseen space
     corners_xy: FloatArray = field(init=False)  # the polygon shape's own coordinates (N, 2)
     version: int = field(init=False, default=0)  # bumped by every :meth:`close`
@@ -116,6 +123,7 @@ class Keyframe:
         self.kinds = self.polygon.kinds.copy()
         self.radius_m = float(np.max(np.linalg.norm(self.polygon.vertices_xy, axis=1)))
         self.walls = self.polygon.obstacle_segments()
+        self.wall_runs = _wall_runs(self.walls)
         self.open_edges = self.polygon.open_segments()
         self.corners_xy = shapely.get_coordinates(self.polygon.shape)
 
@@ -139,6 +147,23 @@ class Keyframe:
     def beyond_points(self, indices: NDArray[np.intp], offset_m: float) -> FloatArray:
         """Points just outside the polygon at the given vertices, in this keyframe's frame."""
         return self.polygon.vertices_xy[indices] + offset_m * self.polygon.outward_xy[indices]
+
+
+def _wall_runs(walls: FloatArray) -> FloatArray:
+    """(M, 2): how far each edge's wall (the run of edges joined end to start, as the polygon
+    gives them) runs on before the edge's start and after its end, along the edges."""
+    out = np.zeros((walls.shape[0], 2))
+    if walls.shape[0] == 0:
+        return out
+    length = np.hypot(*(walls[:, 1] - walls[:, 0]).T)
+    starts_run = np.concatenate(([True], np.any(walls[1:, 0] != walls[:-1, 1], axis=1)))
+    run = np.cumsum(starts_run) - 1
+    first = np.flatnonzero(starts_run)
+    last = np.concatenate((first[1:], [walls.shape[0]])) - 1
+    start_m = np.cumsum(length) - length  # each edge's start, along all edges in turn
+    out[:, 0] = start_m - start_m[first][run]
+    out[:, 1] = (start_m + length)[last][run] - (start_m + length)
+    return out
 
 
 def _segments_geometry(segments: FloatArray) -> shapely.MultiLineString:
@@ -672,6 +697,15 @@ class LocalMap:
             out[who[inside][depth > tol]] = True
         return out
 
+    def _chain_drift_m(self, kf_id: int, others: list[int]) -> FloatArray:
+        """The drift the chain from the keyframe to each of these neighbours allows, for those
+        ``misplaced_min_hops`` or more along it; -inf for nearer ones (not asked)."""
+        p = self.params
+        hops_to = self._hops[kf_id]
+        hops = np.array([hops_to.get(k, 0) for k in others], dtype=np.float64)
+        drift = np.minimum(p.chain_max_margin_m, p.chain_margin_per_hop_m * hops)
+        return np.where(hops >= p.misplaced_min_hops, drift, -math.inf)
+
     def _close_at_walls(self, kf_id: int, view: LocalView) -> None:
         """A frontier vertex lying on a wall another view saw is no frontier (range noise at the
         sensor's limit leaves such vertices, and nothing beyond them can ever be seen): within
@@ -681,15 +715,21 @@ class LocalMap:
 
         Only between views that agree (:meth:`_disagreeing`), however few hops apart: a loop
         closure 0.35 m off placed a view two hops away with a wall across a cave's passage, and
-        the passage's frontiers closed on it (cave seed 5: `complete` at coverage 0.52)."""
+        the passage's frontiers closed on it (cave seed 5: `complete` at coverage 0.52). And a
+        range-limit vertex with no wall beside it lies on the wall of a neighbour
+        ``misplaced_min_hops`` or more along only where that wall runs on past it by the chain's
+        drift (see ``MapParams.misplaced_min_hops``)."""
         kf = self.keyframes[kf_id]
         p = self.params
         own_walls = kf.walls
         own = kf.open_frontier_indices()
         behind = p.wall_behind_m
         others = list(view.poses)[1:]  # the view's own keyframe comes first, its walls too
+        drift = self._chain_drift_m(kf_id, others)
         if own.size:
             theirs = slice(own_walls.shape[0], None)
+            per_view = [self.keyframes[k].walls.shape[0] for k in others]
+            owner = np.repeat(others, per_view)
             near = _near_walls(
                 kf.polygon.vertices_xy[own],
                 kf.polygon.on_shadow[own],
@@ -698,9 +738,10 @@ class LocalMap:
                 _snaps_m(kf.polygon.at_range_limit[own], p.wall_snap_m, p.range_limit_snap_m),
                 behind,
                 _past_end_m(kf, own, p),
+                np.where(_loose_limit(kf, own)[:, None], np.repeat(drift, per_view)[None, :], -math.inf),
+                np.concatenate([np.zeros((0, 2))] + [self.keyframes[k].wall_runs for k in others]),
             )
             if near.any():
-                owner = np.repeat(others, [self.keyframes[k].walls.shape[0] for k in others])
                 lenders = owner[near.any(axis=0)].tolist()
                 bad = self._disagreeing(view, lenders)
                 if bad:
@@ -719,7 +760,9 @@ class LocalMap:
         snap = _snaps_m(limit, p.wall_snap_m, p.range_limit_snap_m)
         own_from = np.zeros((own_walls.shape[0], 2))  # seen from this keyframe's origin
         past_end = np.concatenate([_past_end_m(other, i, p) for other, i in zip(kfs, idx, strict=True)])
-        near_own = _near_walls(pts, shadow, own_walls, own_from, snap, behind, past_end)
+        loose = np.concatenate([_loose_limit(other, i) for other, i in zip(kfs, idx, strict=True)])
+        runs_on = np.where(loose, np.repeat(drift, [i.size for i in idx]), -math.inf)[:, None]
+        near_own = _near_walls(pts, shadow, own_walls, own_from, snap, behind, past_end, runs_on, kf.wall_runs)
         on: NDArray[np.bool_] = np.asarray(near_own.any(axis=1))
         if on.any():
             vertex_owner = np.repeat(others, [i.size for i in idx])
@@ -727,6 +770,15 @@ class LocalMap:
             if bad:
                 on &= ~np.isin(vertex_owner, list(bad))
         _close_where(kfs, idx, on, VertexKind.OBSTACLE)
+
+
+def _loose_limit(kf: Keyframe, indices: NDArray[np.intp]) -> NDArray[np.bool_]:
+    """Which of these vertices lie at the range limit with no obstacle vertex beside them in
+    their own polygon (out in an arc, as in a doorway; not where a wall left the range)."""
+    kinds = kf.polygon.kinds
+    n = kinds.size
+    beside = (kinds[(indices - 1) % n] == VertexKind.OBSTACLE) | (kinds[(indices + 1) % n] == VertexKind.OBSTACLE)
+    return np.asarray(kf.polygon.at_range_limit[indices] & ~beside, dtype=bool)
 
 
 def _past_end_m(kf: Keyframe, indices: NDArray[np.intp], p: MapParams) -> FloatArray:
@@ -766,6 +818,8 @@ def _near_walls(
     snap_m: float | FloatArray,
     behind_m: float,
     past_end_m: float | FloatArray = math.inf,
+    runs_on_m: FloatArray | None = None,
+    wall_runs: FloatArray | None = None,
 ) -> NDArray[np.bool_]:
     """(N, M): which frontier vertices (``points_xy``) lie on which walls (segments (M, 2, 2), each
     seen from the matching point of ``seen_from_xy``): within ``snap_m`` of it, and, for those on
@@ -782,7 +836,11 @@ def _near_walls(
     drift across a wall, and past a jamb's end lies a door. (A door seen only at a grazing angle
     kept one frontier vertex, at the range limit in the doorway, 0.28 m from the jamb's end:
     closed as that wall, courtyard seed 4 ran `complete` at coverage 0.937 in a variant, with the
-    room behind unseen.)"""
+    room behind unseen.)
+
+    With ``runs_on_m`` ((N, M) or (N, 1); -inf where not asked) and each segment's ``wall_runs``
+    (see :func:`_wall_runs`), a vertex lies on a segment only where its wall runs on past the
+    vertex, both ways along it, farther than that."""
     out = np.zeros((points_xy.shape[0], segments.shape[0]), dtype=bool)
     if segments.shape[0] == 0 or points_xy.shape[0] == 0:
         return out
@@ -802,6 +860,14 @@ def _near_walls(
     if bounded.any() and near.any():
         at = np.einsum("nmd,md->nm", points_xy[bounded][:, None, :] - a[None], along) / length[None]
         near[bounded] &= np.maximum(-at, at - length[None]) < past_end[bounded, None]
+    if runs_on_m is not None and wall_runs is not None and near.any():
+        runs_on = runs_on_m[:, keep] if runs_on_m.shape[1] > 1 else runs_on_m
+        asked = np.isfinite(runs_on).any(axis=1)
+        if asked.any():
+            before, after = wall_runs[keep, 0], wall_runs[keep, 1]
+            at = np.einsum("nmd,md->nm", points_xy[asked][:, None, :] - a[None], along) / length[None]
+            run_m = np.minimum(at + before[None], length[None] - at + after[None])
+            near[asked] &= run_m > runs_on[asked]
     if on_shadow.any():
         normal = np.column_stack((-along[:, 1], along[:, 0])) / length[:, None]
         facing = np.sign(np.einsum("md,md->m", seen_from_xy - a, normal))  # the side its view saw
