@@ -1153,3 +1153,46 @@ def test_a_far_range_limit_fragment_counts_only_in_an_opening_between_parallel_w
 def _walled_in_polygon() -> FovPolygon:
     """A view of a wall 1 m ahead all across: no frontier run in it worth a flight."""
     return scan_to_polygon(DepthScan(0.0, BEARINGS, 1.0 / np.cos(BEARINGS), 5.0))
+
+
+@pytest.mark.parametrize("sight_trim_m", [0.2, 0.0])
+def test_a_goal_found_by_a_detour_is_one_from_which_the_vehicle_sees_its_vertex(sight_trim_m):
+    """At A's origin its frontier ahead (5 m) is reached only round a pillar B saw 2 m ahead, by a
+    path through known free space. C saw a wall across 0.6 m short of the vertex: its plain goals
+    (1 m, 0.6 m and 1.5 m back along its normal) lie behind that wall, where the vehicle would
+    look at the wall (lshape seed 7 flew round through the next room to such a goal). The goal
+    taken is one shifted sideways, whose line of sight passes the wall's end; with the check off
+    (``sight_trim_m`` 0), the plain one."""
+    m = LocalMap()
+    open_arc = DepthScan(0.0, BEARINGS, np.full(64, 5.0), 5.0)
+    a = m.add_keyframe(0.0, Pose2(0.0, 0.0, 0.0), scan_to_polygon(open_arc))
+    ranges = np.full(64, 5.0)
+    ranges[np.abs(BEARINGS) < 0.04] = 2.0
+    b = m.add_keyframe(1.0, Pose2(), scan_to_polygon(DepthScan(0.0, BEARINGS, ranges, 5.0)), (a.keyframe_id, Pose2()))
+    c_pose = Pose2(4.7, 0.0, math.pi)  # looking back at a wall across x = 4.4, |y| <= 0.3
+    c = m.add_keyframe(
+        2.0, c_pose, scan_to_polygon(DepthScan(0.0, BEARINGS, 0.3 / np.cos(BEARINGS), 5.0)), (b.keyframe_id, c_pose)
+    )
+    for kf in (b, c):
+        m.close_frontiers(kf.keyframe_id, np.flatnonzero(kf.kinds == VertexKind.FRONTIER))
+    idx = np.flatnonzero(a.kinds == VertexKind.FRONTIER)
+    m.close_frontiers(a.keyframe_id, idx[np.abs(a.polygon.vertices_xy[idx, 1]) > 0.3])
+    assert np.count_nonzero(a.kinds == VertexKind.FRONTIER) == 2  # (5, -0.19) and (5, 0.19)
+    wall = shapely.LineString([(4.4, -0.3), (4.4, 0.3)])
+
+    class RoundThePillar(FrontierPlanner):
+        def _reach(self, view: object, here: np.ndarray, clearance_m: float | None = None):  # type: ignore[override]
+            class Reach:
+                def path_to(self, goal_xy: np.ndarray, snap: bool = False) -> np.ndarray:
+                    return np.array([[2.0, 1.0], goal_xy])
+
+            return Reach()
+
+    planner = RoundThePillar(PlannerParams(sight_trim_m=sight_trim_m))
+    planner.route = _Route([a.keyframe_id], a.keyframe_id)
+    planner._arrived_at = a.keyframe_id
+    decision = planner.plan(m, a.keyframe_id, Pose2(0.0, 0.0, 0.0), 100.0)
+    assert decision.mode is Mode.EXPLORING and planner.goal is not None and planner.goal.path is not None
+    goal, vertex = planner.goal.local_xy, a.polygon.vertices_xy[planner.goal.key.index]
+    crosses = shapely.LineString([goal, vertex - 0.2 * (vertex - goal) / np.hypot(*(vertex - goal))]).intersects(wall)
+    assert crosses == (sight_trim_m == 0.0)

@@ -124,6 +124,13 @@ class PlannerParams:
     leg_margin_m: float = 0.05
     route_timeout_s: float = 30.0  # backtracking without reaching a waypoint for this long fails the target
     side_shift_m: float = 0.5  # sideways goal shift tried from a keyframe's origin
+    # A goal reached by a path through known free space (not straight) is taken only where the
+    # vehicle would see its vertex: the line between them, short of the vertex by
+    # ``sight_trim_m``, crosses no wall in view. A doorway vertex's normal point lay 1.1 m back,
+    # across the wall between two rooms; the path went round through the other room's door, the
+    # vehicle looked at the wall, flew back to the keyframe and took it again (lshape seed 7:
+    # 30 s). 0 turns it off.
+    sight_trim_m: float = 0.2
     approach_gain_m: float = 1.0  # an approach must end at least this much nearer its frontier
     # A route leg the newest scan sees blocked is flown round through the scan's own free space
     # (aims this far off the leg's line, this long, each at least the gain nearer the waypoint)
@@ -862,6 +869,8 @@ class FrontierPlanner:
                     reach = self._reach(view, here, clearance)
                     if reach is None:
                         break
+                if not self._sees(local_map, view, c):
+                    continue
                 path = reach.path_to(c.goal_xy)
                 if path is not None and (not eased or self._path_clear_of_live(here, path, required)):
                     c.path, c.eased = path, eased
@@ -871,6 +880,25 @@ class FrontierPlanner:
         if searched:
             self._grid_tried = tried
         return None
+
+    def _sees(self, local_map: LocalMap, view: LocalView, c: _Candidate) -> bool:
+        """From the candidate's goal the vehicle would see its vertex: the line between them,
+        short of the vertex by ``sight_trim_m`` (a vertex may lie on a wall), crosses no wall in
+        view."""
+        trim = self.params.sight_trim_m
+        if trim <= 0.0 or view.obstacles.is_empty:
+            return True
+        pose = view.poses.get(c.key.keyframe_id)
+        if pose is None:
+            pose = local_map.pose_in(view.keyframe_id, c.key.keyframe_id)
+        kf = local_map.keyframes[c.key.keyframe_id]
+        vertex = pose.apply(kf.polygon.vertices_xy[c.key.index : c.key.index + 1])[0]
+        to_vertex = vertex - c.goal_xy
+        length = float(np.hypot(*to_vertex))
+        if length <= trim:
+            return True
+        end = c.goal_xy + to_vertex * (length - trim) / length
+        return not bool(shapely.intersects(shapely.LineString([c.goal_xy, end]), view.obstacles))
 
     def _open_through_graph(self, local_map: LocalMap, key: FrontierKey) -> bool:
         """Still open once views along the pose graph are checked too (a view that saw beyond it
