@@ -857,16 +857,19 @@ def _near_walls(
     length = np.maximum(np.hypot(*along.T), 1e-12)
     past_end = np.broadcast_to(np.asarray(past_end_m, dtype=np.float64), points_xy.shape[:1])
     bounded = np.isfinite(past_end)
-    if bounded.any() and near.any():
-        at = np.einsum("nmd,md->nm", points_xy[bounded][:, None, :] - a[None], along) / length[None]
-        near[bounded] &= np.maximum(-at, at - length[None]) < past_end[bounded, None]
-    if runs_on_m is not None and wall_runs is not None and near.any():
+    runs_on = np.full((points_xy.shape[0], 1), -math.inf)
+    if runs_on_m is not None and wall_runs is not None:
         runs_on = runs_on_m[:, keep] if runs_on_m.shape[1] > 1 else runs_on_m
-        asked = np.isfinite(runs_on).any(axis=1)
-        if asked.any():
+    asked = np.isfinite(runs_on).any(axis=1)
+    rows = bounded | asked
+    if rows.any() and near.any():
+        at = np.zeros(near.shape)  # where along each segment each vertex lies, from its start
+        at[rows] = np.einsum("nmd,md->nm", points_xy[rows][:, None, :] - a[None], along) / length[None]
+        if bounded.any():
+            near[bounded] &= np.maximum(-at[bounded], at[bounded] - length[None]) < past_end[bounded, None]
+        if asked.any() and wall_runs is not None:
             before, after = wall_runs[keep, 0], wall_runs[keep, 1]
-            at = np.einsum("nmd,md->nm", points_xy[asked][:, None, :] - a[None], along) / length[None]
-            run_m = np.minimum(at + before[None], length[None] - at + after[None])
+            run_m = np.minimum(at[asked] + before[None], length[None] - at[asked] + after[None])
             near[asked] &= run_m > runs_on[asked]
     if on_shadow.any():
         normal = np.column_stack((-along[:, 1], along[:, 0])) / length[:, None]

@@ -884,15 +884,12 @@ class FrontierPlanner:
     def _sees(self, local_map: LocalMap, view: LocalView, c: _Candidate) -> bool:
         """From the candidate's goal the vehicle would see its vertex: the line between them,
         short of the vertex by ``sight_trim_m`` (a vertex may lie on a wall), crosses no wall in
-        view."""
+        view. Candidates come from the view's keyframes, so the view places the vertex."""
         trim = self.params.sight_trim_m
         if trim <= 0.0 or view.obstacles.is_empty:
             return True
-        pose = view.poses.get(c.key.keyframe_id)
-        if pose is None:
-            pose = local_map.pose_in(view.keyframe_id, c.key.keyframe_id)
         kf = local_map.keyframes[c.key.keyframe_id]
-        vertex = pose.apply(kf.polygon.vertices_xy[c.key.index : c.key.index + 1])[0]
+        vertex = view.poses[c.key.keyframe_id].apply(kf.polygon.vertices_xy[c.key.index : c.key.index + 1])[0]
         to_vertex = vertex - c.goal_xy
         length = float(np.hypot(*to_vertex))
         if length <= trim:
