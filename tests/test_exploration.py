@@ -792,3 +792,23 @@ def test_a_vehicle_rocking_between_a_remembered_return_and_its_way_goes_on_facin
     ex._obstacles_xy, ex._obstacle_sigmas_m = return_xy, np.zeros(1)
     ex._within_lead(ahead, here, (0.0, 0.0), 0.0)
     assert [ex._within_lead(turn_back, here, (0.0, 0.0), 0.1 * i).yaw_rad for i in range(1, 6)] == [0.0] * 5
+
+
+@pytest.mark.parametrize(
+    ("occluded", "depth_m", "taken"), [(False, 0.5, True), (True, 0.5, False), (False, 0.0, False)]
+)
+def test_a_scan_that_sees_past_an_open_shadow_vertex_is_taken_as_a_keyframe(occluded, depth_m, taken):
+    """The first view's left half ends at an occluder 1.5 m off, its shadow edge open. 0.54 m on
+    (no keyframe due by distance or turn), a scan that sees 1 m past the shadow edge's vertices
+    would be lost to the map between keyframes: it is taken as one (unless the rule is off). A
+    scan that still sees the occluder is not."""
+    ex = explorer(seen_past_depth_m=depth_m)
+    first = np.where(BEARINGS > 0.2, 1.5, 3.0)
+    ex.step(Odometry(0.0, Pose2(0.0, 0.0, 0.0)), DepthScan(0.0, BEARINGS, first, 5.0))
+    kf = ex.map.keyframes[ex.current_id]
+    shadow = kf.polygon.on_shadow & (kf.kinds == VertexKind.FRONTIER)
+    assert shadow.any()  # the occluder's shadow edge is open
+    second = np.where(BEARINGS > 0.2, 1.5, 3.0) if occluded else np.full(64, 3.0)
+    result = ex.step(Odometry(0.1, Pose2(0.45, -0.3, 0.0)), DepthScan(0.1, BEARINGS, second, 5.0))
+    assert result.keyframe_added == taken
+    assert len(ex.map) == (2 if taken else 1)
