@@ -14,6 +14,7 @@ from companion.core.fov_polygon import (
     in_view,
     on_scanned_surface,
     scan_to_polygon,
+    seen_past,
 )
 from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan
@@ -342,3 +343,29 @@ def test_a_remembered_return_by_the_field_of_views_edge_is_not_superseded_within
     # stands in for it: superseded, margin or not.
     walled = DepthScan(0.0, BEARINGS, np.full(64, 0.55), 5.0, min_range_m=0.1)
     assert in_view(walled, Pose2.identity(), points[:2], margin_m=0.1).tolist() == [True, True]
+
+
+def test_a_point_is_seen_past_only_where_its_ray_runs_on_that_far_inside_the_field_of_view():
+    """A wall 3 m ahead on the right part, no return on the left part (the ray runs to 5 m), one
+    invalid reading: a point 1 m or more short of where its ray ends is seen past; one nearer the
+    wall than that, one by the field of view's edge, one beside the sensor, or one on the
+    invalid ray, is not."""
+    r = np.full(64, 3.0)
+    r[40:] = np.inf  # no return: the ray runs to the maximum range
+    r[20] = np.nan
+    s = scan(r)
+    sensor = Pose2(1.0, 2.0, 0.5)  # the points below are given in the frame the sensor pose is in
+    b = s.bearings_rad
+    body = np.array(
+        [
+            [1.5, 0.0],  # 1.5 m in front of the wall: seen past
+            [2.5, 0.0],  # 0.5 m in front of it: not 1 m
+            [3.5 * math.cos(b[50]), 3.5 * math.sin(b[50])],  # 1.5 m short of the range limit
+            [4.5 * math.cos(b[50]), 4.5 * math.sin(b[50])],  # 0.5 m short of it
+            [1.0 * math.cos(b[62]), 1.0 * math.sin(b[62])],  # within 0.1 rad of the edge
+            [0.2, 0.0],  # beside the sensor
+            [1.0 * math.cos(b[20]), 1.0 * math.sin(b[20])],  # on the invalid ray
+        ]
+    )
+    got = seen_past(s, sensor, sensor.apply(body), 1.0, fov_margin_rad=0.1, nearest_m=0.3)
+    assert got.tolist() == [True, False, True, False, False, False, False]

@@ -26,6 +26,7 @@ from companion.core.fov_polygon import (
     on_scanned_surface,
     returns_xy,
     scan_to_polygon,
+    seen_past,
 )
 from companion.core.geometry import FloatArray, Pose2, wrap_angle
 from companion.core.local_map import LocalMap, MapParams
@@ -628,21 +629,8 @@ class Explorer:
         pts, owners = self._open_side_and_shadow()
         if pts.shape[0] == 0:
             return False
-        local = scan_pose.inverse().apply(pts)
-        range_m = np.hypot(local[:, 0], local[:, 1])
-        bearing = np.arctan2(local[:, 1], local[:, 0])
-        b = scan.bearings_rad
         edge = self.params.seen_past_fov_margin_rad
-        ok = (bearing >= b[0] + edge) & (bearing <= b[-1] - edge) & (range_m > 0.3)  # not beside the sensor
-        ok &= range_m + depth <= scan.max_range_m
-        idx = np.flatnonzero(ok)
-        if idx.size == 0:
-            return False
-        ray = np.clip(np.searchsorted(b, bearing[idx]), 1, b.size - 1)
-        ray = np.where(np.abs(b[ray - 1] - bearing[idx]) < np.abs(b[ray] - bearing[idx]), ray - 1, ray)
-        seen_m = scan.ranges_m[ray]
-        seen_m = np.where(np.isnan(seen_m), 0.0, np.minimum(seen_m, scan.max_range_m))  # +inf: no return in range
-        past = idx[seen_m >= range_m[idx] + depth]
+        past = np.flatnonzero(seen_past(scan, scan_pose, pts, depth, edge, nearest_m=0.3))  # not beside the sensor
         # The list may be a few keyframes old: ask whether each vertex is still open.
         return any(self.map.keyframes[owners[i][0]].kinds[owners[i][1]] == VertexKind.FRONTIER for i in past)
 

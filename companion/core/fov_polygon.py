@@ -408,6 +408,27 @@ def behind_scanned_surface(
     return hidden
 
 
+def seen_past(
+    scan: DepthScan,
+    sensor: Pose2,
+    points_xy: FloatArray,
+    depth_m: float,
+    fov_margin_rad: float = 0.0,
+    nearest_m: float = 0.0,
+) -> NDArray[np.bool_]:
+    """Which points the scan sees at least ``depth_m`` past, along the ray through each: the ray
+    ran on that far (to a return, or to the maximum range with none), the point at least
+    ``fov_margin_rad`` inside the field of view and farther than ``nearest_m`` from the sensor.
+    Invalid (NaN) readings see nothing."""
+    rng, j, on_ray, bearing = _nearest_rays(scan, sensor, points_xy)
+    b = scan.bearings_rad
+    r = scan.ranges_m[j]
+    ran_m = np.where(np.isnan(r), 0.0, np.minimum(r, scan.max_range_m))  # +inf: no return in range
+    ok = on_ray & (bearing >= b[0] + fov_margin_rad) & (bearing <= b[-1] - fov_margin_rad) & (rng > nearest_m)
+    seen: NDArray[np.bool_] = ok & (rng + depth_m <= scan.max_range_m) & (ran_m >= rng + depth_m)
+    return seen
+
+
 def in_view(scan: DepthScan, sensor: Pose2, points_xy: FloatArray, margin_m: float = 0.0) -> NDArray[np.bool_]:
     """Which points the scan has its own say about: inside the field of view, on a ray with a
     valid reading, at or beyond the minimum range (and within the maximum range where the ray
