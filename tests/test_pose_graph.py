@@ -1,6 +1,6 @@
 import math
 import random
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
@@ -51,6 +51,56 @@ def test_a_level_walk_bridges_a_few_refused_keyframes_in_a_row_and_returns_only_
     assert bridged == {0: 0, 1: 1, 5: 5, 6: 6, 7: 7}
     assert [v.keyframe_id for v in g.walk_levels(0, accept, bridge_hops=2)] == [0, 1]
     assert [v.keyframe_id for v in g.walk_levels(0, accept)] == [0, 1]
+
+
+def _random_graph(rng: random.Random, n: int) -> PoseGraph:
+    """A chain of ``n`` keyframes with n / 4 loop closures between random pairs."""
+    g = PoseGraph()
+    for k in range(n):
+        g.add_keyframe(k)
+        if k:
+            step = Pose2(rng.uniform(0.0, 1.0), rng.uniform(-0.3, 0.3), rng.uniform(-1.0, 1.0))
+            g.add_edge(k - 1, k, step, EdgeType.ODOMETRY)
+    for _ in range(n // 4):
+        a, b = rng.sample(range(n), 2)
+        g.add_edge(a, b, Pose2(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-3, 3)), EdgeType.LOOP_CLOSURE)
+    return g
+
+
+def _near_and_not(refused: set[int], calls: list[int]) -> Callable[[list[int], list[Pose2]], np.ndarray]:
+    """A level filter: keyframes within 4 m of the start and not ``refused``; counts its calls."""
+
+    def accept(ids: list[int], poses: list[Pose2]) -> np.ndarray:
+        calls.append(len(ids))
+        return np.array([k not in refused and math.hypot(p.x_m, p.y_m) < 4.0 for k, p in zip(ids, poses, strict=True)])
+
+    return accept
+
+
+def test_a_walk_asking_ahead_visits_the_same_keyframes_at_the_same_poses_in_fewer_calls():
+    """Asking about keyframes beyond each level (``ahead``) is a speed setting: on random graphs
+    (a chain with loop closures, some of them shortcuts past refused keyframes) the walk returns
+    the same visits, hops and poses to the bit as asking level by level, in fewer calls."""
+    rng = random.Random(7)
+    for trial in range(30):
+        n = rng.randrange(5, 60)
+        g = _random_graph(rng, n)
+        refused = set(rng.sample(range(n), n // 5))
+        start, bridge = rng.randrange(n), trial % 4
+        plain_calls: list[int] = []
+        ahead_calls: list[int] = []
+        plain = g.walk_levels(start, _near_and_not(refused, plain_calls), bridge, 0.2)
+        ahead = g.walk_levels(start, _near_and_not(refused, ahead_calls), bridge, 0.2, ahead=16)
+        assert [(v.keyframe_id, v.hops, v.pose_in_start) for v in ahead] == [
+            (v.keyframe_id, v.hops, v.pose_in_start) for v in plain
+        ]
+        assert len(ahead_calls) <= len(plain_calls)
+    # Along a chain every level holds one keyframe: 39 calls, or three (each the level's one
+    # and 16 beyond), every keyframe asked once (1 m steps turning a quarter: all within 4 m).
+    counted: list[int] = []
+    everything = chain(40).walk_levels(0, _near_and_not(set(), counted), ahead=16)
+    assert len(everything) == 40
+    assert counted == [17, 17, 5]
 
 
 def test_unknown_keyframes_and_bad_edges_raise():

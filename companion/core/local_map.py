@@ -64,6 +64,9 @@ class MapParams:
     # number: the start's full turn left ten views at one spot, and the views flown on from
     # there never met its first (east-facing) one, whose frontiers stayed open all run.
     neighbourhood_still_m: float = 0.2
+    # The walk asks whether views overlap the keyframe for this many views beyond each level at
+    # once (the same walk; a speed setting only, see ``PoseGraph.walk_levels``).
+    neighbourhood_ask_ahead: int = 32
     # Closing against views outside the neighbourhood, reached along the pose graph: the vertex
     # must lie deeper inside the other view the longer the chain (drift accumulates along it),
     # at least as deep as the closing depth beyond the offset.
@@ -118,6 +121,10 @@ class Keyframe:
     # (version, min size, indices): the open frontier vertices worth a flight, see frontiers.py
     targetable_memo: tuple[int, float, NDArray[np.intp]] | None = field(init=False, default=None)
     open_memo: tuple[int, NDArray[np.intp]] | None = field(init=False, default=None)
+    wall_facts_memo: tuple[int, _WallFacts] | None = field(init=False, default=None)
+    # every vertex's _past_end_m and _loose_limit (the polygon's, so computed once)
+    past_end_m: FloatArray | None = field(init=False, default=None)
+    loose_limit: NDArray[np.bool_] | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         self.kinds = self.polygon.kinds.copy()
@@ -147,6 +154,41 @@ class Keyframe:
     def beyond_points(self, indices: NDArray[np.intp], offset_m: float) -> FloatArray:
         """Points just outside the polygon at the given vertices, in this keyframe's frame."""
         return self.polygon.vertices_xy[indices] + offset_m * self.polygon.outward_xy[indices]
+
+
+@dataclass(frozen=True, slots=True)
+class _WallFacts:
+    """What :meth:`LocalMap._close_at_walls` asks of a keyframe's open frontier vertices, in its
+    own frame: gathered once per :meth:`Keyframe.close`, not per neighbour per new view."""
+
+    indices: NDArray[np.intp]
+    points_xy: FloatArray
+    on_shadow: NDArray[np.bool_]
+    snap_m: FloatArray
+    past_end_m: FloatArray
+    loose_limit: NDArray[np.bool_]
+
+
+def _wall_facts(kf: Keyframe, p: MapParams) -> _WallFacts:
+    """The keyframe's :class:`_WallFacts` (memoised until its next :meth:`Keyframe.close`)."""
+    memo = kf.wall_facts_memo
+    if memo is not None and memo[0] == kf.version:
+        return memo[1]
+    if kf.past_end_m is None or kf.loose_limit is None:
+        every = np.arange(kf.kinds.size)
+        kf.past_end_m, kf.loose_limit = _past_end_m(kf, every, p), _loose_limit(kf, every)
+    idx = kf.open_frontier_indices()
+    poly = kf.polygon
+    facts = _WallFacts(
+        idx,
+        poly.vertices_xy[idx],
+        poly.on_shadow[idx],
+        _snaps_m(poly.at_range_limit[idx], p.wall_snap_m, p.range_limit_snap_m),
+        kf.past_end_m[idx],
+        kf.loose_limit[idx],
+    )
+    kf.wall_facts_memo = (kf.version, facts)
+    return facts
 
 
 def _wall_runs(walls: FloatArray) -> FloatArray:
@@ -573,7 +615,11 @@ class LocalMap:
             return out
 
         visits = self.graph.walk_levels(
-            kf_id, overlaps, self.params.neighbourhood_bridge_hops, self.params.neighbourhood_still_m
+            kf_id,
+            overlaps,
+            self.params.neighbourhood_bridge_hops,
+            self.params.neighbourhood_still_m,
+            ahead=self.params.neighbourhood_ask_ahead,
         )
         return {v.keyframe_id: (v.pose_in_start, v.hops) for v in visits[1:]}
 
@@ -722,7 +768,8 @@ class LocalMap:
         kf = self.keyframes[kf_id]
         p = self.params
         own_walls = kf.walls
-        own = kf.open_frontier_indices()
+        mine = _wall_facts(kf, p)
+        own = mine.indices
         behind = p.wall_behind_m
         others = list(view.poses)[1:]  # the view's own keyframe comes first, its walls too
         drift = self._chain_drift_m(kf_id, others)
@@ -731,14 +778,14 @@ class LocalMap:
             per_view = [self.keyframes[k].walls.shape[0] for k in others]
             owner = np.repeat(others, per_view)
             near = _near_walls(
-                kf.polygon.vertices_xy[own],
-                kf.polygon.on_shadow[own],
+                mine.points_xy,
+                mine.on_shadow,
                 view.walls_xy[theirs],
                 view.walls_seen_from_xy[theirs],
-                _snaps_m(kf.polygon.at_range_limit[own], p.wall_snap_m, p.range_limit_snap_m),
+                mine.snap_m,
                 behind,
-                _past_end_m(kf, own, p),
-                np.where(_loose_limit(kf, own)[:, None], np.repeat(drift, per_view)[None, :], -math.inf),
+                mine.past_end_m,
+                np.where(mine.loose_limit[:, None], np.repeat(drift, per_view)[None, :], -math.inf),
                 np.concatenate([np.zeros((0, 2))] + [self.keyframes[k].wall_runs for k in others]),
             )
             if near.any():
@@ -749,23 +796,23 @@ class LocalMap:
                 kf.close(own[near.any(axis=1)], VertexKind.OBSTACLE)
         if own_walls.shape[0] == 0:
             return
-        poses = [view.poses[k] for k in others]
-        kfs = [self.keyframes[k] for k in others]
-        idx = [other.open_frontier_indices() for other in kfs]
-        if not any(i.size for i in idx):
+        facts = [_wall_facts(self.keyframes[k], p) for k in others]
+        if not any(f.indices.size for f in facts):
             return
-        pts = apply_grouped(poses, [other.polygon.vertices_xy[i] for other, i in zip(kfs, idx, strict=True)])
-        shadow = np.concatenate([other.polygon.on_shadow[i] for other, i in zip(kfs, idx, strict=True)])
-        limit = np.concatenate([other.polygon.at_range_limit[i] for other, i in zip(kfs, idx, strict=True)])
-        snap = _snaps_m(limit, p.wall_snap_m, p.range_limit_snap_m)
+        kfs = [self.keyframes[k] for k in others]
+        idx = [f.indices for f in facts]
+        counts = [i.size for i in idx]
+        pts = apply_grouped([view.poses[k] for k in others], [f.points_xy for f in facts])
+        shadow = np.concatenate([f.on_shadow for f in facts])
+        snap = np.concatenate([f.snap_m for f in facts])
         own_from = np.zeros((own_walls.shape[0], 2))  # seen from this keyframe's origin
-        past_end = np.concatenate([_past_end_m(other, i, p) for other, i in zip(kfs, idx, strict=True)])
-        loose = np.concatenate([_loose_limit(other, i) for other, i in zip(kfs, idx, strict=True)])
-        runs_on = np.where(loose, np.repeat(drift, [i.size for i in idx]), -math.inf)[:, None]
+        past_end = np.concatenate([f.past_end_m for f in facts])
+        loose = np.concatenate([f.loose_limit for f in facts])
+        runs_on = np.where(loose, np.repeat(drift, counts), -math.inf)[:, None]
         near_own = _near_walls(pts, shadow, own_walls, own_from, snap, behind, past_end, runs_on, kf.wall_runs)
         on: NDArray[np.bool_] = np.asarray(near_own.any(axis=1))
         if on.any():
-            vertex_owner = np.repeat(others, [i.size for i in idx])
+            vertex_owner = np.repeat(others, counts)
             bad = self._disagreeing(view, vertex_owner[on].tolist())
             if bad:
                 on &= ~np.isin(vertex_owner, list(bad))

@@ -157,6 +157,7 @@ class PoseGraph:
         accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]],
         bridge_hops: int = 0,
         still_m: float = 0.0,
+        ahead: int = 0,
     ) -> list[Visit]:
         """:meth:`walk`, with ``accept`` asked once per hop count for every keyframe first met at
         that count (ids and poses in the start's frame, in the walk's order), so it can test them
@@ -164,12 +165,20 @@ class PoseGraph:
         keyframes in a row (not returned): past a turn in place, say, whose views look away.
         A refused keyframe reached by an edge shorter than ``still_m`` does not count towards
         them: a whole turn in place (ten views at one spot) is bridged, at any length (when the
-        walk bridges at all: ``bridge_hops`` > 0)."""
+        walk bridges at all: ``bridge_hops`` > 0).
+
+        With ``ahead`` > 0, ``accept`` must judge each keyframe by its id and pose alone: each
+        call then also asks about up to ``ahead`` keyframes beyond the level, walked on without
+        a filter (:meth:`_judge_ahead`), and a later level takes those answers where it meets the
+        keyframe at the very same pose. The same walk in a few calls instead of one per hop:
+        along a chain of views most levels hold one or two keyframes, and a call's fixed cost
+        was most of the walk's time."""
         if start_id not in self._adjacency:
             raise GraphError(f"keyframe {start_id} is not in the graph")
         seen = {start_id}
         out = [Visit(start_id, 0, Pose2.identity())]
         level: list[tuple[Visit, int]] = [(out[0], 0)]  # each with the refused keyframes in a row up to it
+        judged: dict[int, tuple[Pose2, bool]] = {}  # asked ahead of the walk (``ahead``), at that pose
         while level:
             ids: list[int] = []
             poses: list[Pose2] = []
@@ -183,7 +192,12 @@ class PoseGraph:
                         moved = still_m <= 0.0 or bridge_hops == 0 or math.hypot(rel.x_m, rel.y_m) >= still_m
                         misses.append(miss + 1 if moved else miss)
             hops = level[0][0].hops + 1
-            ok = accept(ids, poses) if ids else np.zeros(0, dtype=bool)
+            if not ids:
+                ok = np.zeros(0, dtype=bool)
+            elif ahead > 0:
+                ok = self._judge_ahead(ids, poses, accept, judged, seen, ahead)
+            else:
+                ok = accept(ids, poses)
             level = []
             for k, pose, keep, miss in zip(ids, poses, ok, misses, strict=True):
                 visit = Visit(k, hops, pose)
@@ -193,6 +207,41 @@ class PoseGraph:
                 elif miss <= bridge_hops:
                     level.append((visit, miss))
         return out
+
+    def _judge_ahead(
+        self,
+        ids: list[int],
+        poses: list[Pose2],
+        accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]],
+        judged: dict[int, tuple[Pose2, bool]],
+        seen: set[int],
+        ahead: int,
+    ) -> NDArray[np.bool_]:
+        """``accept`` for one level of :meth:`walk_levels`: answers ``judged`` holds for a
+        keyframe at that very pose, and one call for the rest together with up to ``ahead``
+        keyframes beyond them (breadth first from them, poses composed as the walk composes them,
+        none the walk has met), whose answers go into ``judged`` for the levels to come."""
+        todo = [i for i, (k, pose) in enumerate(zip(ids, poses, strict=True)) if judged.get(k, (None,))[0] != pose]
+        if todo:
+            ask_ids, ask_poses = [ids[i] for i in todo], [poses[i] for i in todo]
+            met = set(ask_ids)
+            queue = deque(zip(ask_ids, ask_poses, strict=True))
+            extra = 0
+            while queue and extra < ahead:
+                k, pose = queue.popleft()
+                for nbr, rel in self._adjacency[k]:
+                    if nbr in seen or nbr in met or extra >= ahead:
+                        continue
+                    met.add(nbr)
+                    nbr_pose = pose.compose(rel)
+                    ask_ids.append(nbr)
+                    ask_poses.append(nbr_pose)
+                    queue.append((nbr, nbr_pose))
+                    extra += 1
+            answers = accept(ask_ids, ask_poses)
+            for k, pose, ok in zip(ask_ids, ask_poses, answers.tolist(), strict=True):
+                judged[k] = (pose, bool(ok))
+        return np.array([judged[k][1] for k in ids], dtype=bool)
 
     def order_from(self, start_id: int) -> list[int]:
         """Every keyframe connected to ``start_id``, nearest (in hops) first, in :meth:`walk`'s
