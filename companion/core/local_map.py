@@ -231,6 +231,7 @@ class LocalView:
     walls_xy: FloatArray  # every obstacle edge seen in the neighbourhood (M, 2, 2), its own first
     obstacles: shapely.MultiLineString  # the same edges as one geometry, for distance queries
     walls_seen_from_xy: FloatArray  # (M, 2): the origin of the view that saw each edge
+    wall_starts: NDArray[np.intp]  # where each keyframe's edges start in ``walls_xy`` (``poses`` order, and the end)
     _grown: shapely.Geometry | None = None
     # neighbour -> whether it disagrees with the keyframe (LocalMap._disagreeing), asked lazily
     disagrees: dict[int, bool] = field(default_factory=dict)
@@ -371,8 +372,10 @@ class LocalMap:
         walls_xy = apply_grouped(frames, [kf.walls.reshape(-1, 2) for kf in kfs]).reshape(-1, 2, 2)
         obstacles = _segments_geometry(walls_xy)
         shapely.prepare(obstacles)
-        seen_from = np.repeat([(f.x_m, f.y_m) for f in frames], [kf.walls.shape[0] for kf in kfs], axis=0)
-        view = LocalView(keyframe_id, poses, shapes, walls_xy, obstacles, seen_from.reshape(-1, 2))
+        counts = [kf.walls.shape[0] for kf in kfs]
+        seen_from = np.repeat([(f.x_m, f.y_m) for f in frames], counts, axis=0)
+        starts = np.concatenate(([0], np.cumsum(counts))).astype(np.intp)
+        view = LocalView(keyframe_id, poses, shapes, walls_xy, obstacles, seen_from.reshape(-1, 2), starts)
         self._views[keyframe_id] = view
         return view
 
@@ -471,7 +474,9 @@ class LocalMap:
         if doubtful.size:
             at = [Pose2(float(px), float(py), float(pt)) for px, py, pt in poses[doubtful]]
             their_walls = [self.keyframes[int(ids[i])].walls for i in doubtful]
-            found = self._disagree(keyframe_id, kf.polygon.shape, move_each(at, shapes[doubtful]), at, their_walls)
+            placed = apply_grouped(at, [w.reshape(-1, 2) for w in their_walls]).reshape(-1, 2, 2)
+            placed_walls = np.split(placed, np.cumsum([w.shape[0] for w in their_walls])[:-1])
+            found = self._disagree(keyframe_id, kf.polygon.shape, move_each(at, shapes[doubtful]), placed_walls)
             bad = doubtful[found]
             if bad.size:
                 inside[bad] = False
@@ -704,9 +709,9 @@ class LocalMap:
         if todo:
             order = {k: i for i, k in enumerate(view.poses)}
             at = np.array([order[k] for k in todo], dtype=np.intp)
-            frames = [view.poses[k] for k in todo]
-            walls = [self.keyframes[k].walls for k in todo]
-            found = self._disagree(view.keyframe_id, view.shapes[0], view.shapes[at], frames, walls)
+            # Their walls as the view placed them (the same numbers as moving them again).
+            walls = [view.walls_xy[view.wall_starts[i] : view.wall_starts[i + 1]] for i in at.tolist()]
+            found = self._disagree(view.keyframe_id, view.shapes[0], view.shapes[at], walls)
             view.disagrees.update(zip(todo, found.tolist(), strict=True))
         return {k for k in ids if view.disagrees.get(k, False)}
 
@@ -715,11 +720,10 @@ class LocalMap:
         keyframe_id: int,
         own_shape: shapely.Geometry,
         shapes: NDArray[np.object_],
-        frames: list[Pose2],
         walls: list[FloatArray],
     ) -> NDArray[np.bool_]:
-        """Which of the other views (``shapes`` already placed in the keyframe's frame by
-        ``frames``, their ``walls`` in their own frames) disagree with the keyframe by more than
+        """Which of the other views (``shapes`` and their ``walls`` already placed in the
+        keyframe's frame) disagree with the keyframe by more than
         ``misplaced_depth_m``: its walls (ends and midpoints) that deep inside theirs, or theirs
         inside its own polygon ``own_shape``. (Not a deeper tolerance for a longer chain: in a
         corridor nothing lies deeper inside a view than half the corridor's width.)"""
@@ -736,7 +740,7 @@ class LocalMap:
             depth = shapely.distance(shapely.boundary(shapes[rows]), shapely.points(pts[cols]))
             out[rows[depth > tol]] = True
         if any(w.shape[0] for w in walls):
-            placed = apply_grouped(frames, [w.reshape(-1, 2) for w in walls]).reshape(-1, 2, 2)
+            placed = np.concatenate(walls)
             pts, who = probes(placed), np.tile(np.repeat(np.arange(len(walls)), [w.shape[0] for w in walls]), 3)
             inside = shapely.contains_xy(own_shape, pts[:, 0], pts[:, 1])
             depth = shapely.distance(shapely.boundary(own_shape), shapely.points(pts[inside]))

@@ -198,13 +198,16 @@ def _nearest_on_walls(
     normal (the direction from that point when it is a wall's end: the residual is a distance),
     and whether that nearest point is a wall's end."""
     closest_all, t = closest_on_segments(points_xy, walls)
-    d_all = np.linalg.norm(points_xy[:, None, :] - closest_all, axis=2)
-    j = np.argmin(d_all, axis=1)
+    off_all = points_xy[:, None, :] - closest_all
+    squared = np.add.reduce(off_all * off_all, axis=2)  # the square root only of the nearest
+    j = np.argmin(squared, axis=1)
     rows = np.arange(points_xy.shape[0])
-    dist = d_all[rows, j]
+    dist = np.sqrt(squared[rows, j])
     closest = closest_all[rows, j]
     seg = walls[j, 1, :] - walls[j, 0, :]
-    normals = np.column_stack((-seg[:, 1], seg[:, 0])) / np.maximum(np.linalg.norm(seg, axis=1), 1e-12)[:, None]
+    normals = np.empty_like(seg)
+    normals[:, 0], normals[:, 1] = -seg[:, 1], seg[:, 0]
+    normals /= np.maximum(np.sqrt(np.add.reduce(seg * seg, axis=1)), 1e-12)[:, None]
     at_end = (t[rows, j] <= 0.0) | (t[rows, j] >= 1.0)
     off = points_xy - closest
     far = at_end & (dist > 1e-9)
