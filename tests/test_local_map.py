@@ -76,6 +76,38 @@ def test_neighbourhood_holds_only_views_overlapping_the_keyframe(steps):
         for other, rel in m.neighbourhood(k).items():
             moved = rel.move(m.keyframes[other].polygon.shape)
             assert shape.intersects(moved)
+        # And every view one hop along that overlaps it is a neighbour (the walk asks them all):
+        # no cheap test on the way (origins' ranges, discs round each view) refuses one.
+        for other in (k - 1, k + 1):
+            if other in m.keyframes and shape.intersects(
+                m.graph.relative(k, other).move(m.keyframes[other].polygon.shape)
+            ):
+                assert other in m.neighbourhood(k)
+
+
+def test_the_neighbourhood_of_a_view_holds_every_view_one_hop_away_that_overlaps_it_and_no_other():
+    """Views all hung on the first one (a star: each one hop from it), at random places and
+    headings, many barely touching it or barely apart: its neighbourhood is exactly those whose
+    polygons intersect its own, whatever cheap tests the walk settles most of them by."""
+    rng = np.random.default_rng(3)
+    m = LocalMap(MapParams(neighbourhood_bridge_hops=0))
+    centre = m.add_keyframe(0.0, Pose2(), scan_to_polygon(open_scan(5.0)))
+    expected = set()
+    for _ in range(60):
+        pose = Pose2(rng.uniform(-5.0, 10.0), rng.uniform(-7.0, 7.0), rng.uniform(-math.pi, math.pi))
+        kf = m.add_keyframe(0.0, pose, scan_to_polygon(open_scan(rng.uniform(1.0, 5.0))), (centre.keyframe_id, pose))
+        if centre.polygon.shape.intersects(pose.move(kf.polygon.shape)):
+            expected.add(kf.keyframe_id)
+    assert 5 < len(expected) < 55
+    assert set(m.neighbourhood(centre.keyframe_id)) == expected
+
+
+def test_a_views_disc_holds_its_polygon_more_tightly_than_its_range():
+    kf = LocalMap().add_keyframe(0.0, Pose2(), scan_to_polygon(open_scan(5.0)))
+    x, y, r = kf.disc_xyr
+    off_m = np.hypot(kf.corners_xy[:, 0] - x, kf.corners_xy[:, 1] - y)
+    assert np.all(off_m <= r) and off_m.max() == r  # holds every corner, and touches one
+    assert r < 0.8 * kf.radius_m  # a quarter-circle wedge: its box's centre is well off the sensor
 
 
 def test_the_neighbourhood_reaches_past_a_turn_in_place_that_looked_away():

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from companion.core.errors import GraphError
 from companion.core.fov_polygon import FovPolygon, VertexKind
-from companion.core.geometry import FloatArray, Pose2, apply_grouped, move_each, point_segment_distances
+from companion.core.geometry import FloatArray, Pose2, apply_each, apply_grouped, move_each, point_segment_distances
 from companion.core.pose_graph import EdgeType, PoseGraph
 from companion.core.slivers import SliverParams, sliver_vertices
 
@@ -117,6 +117,10 @@ class Keyframe:
     wall_runs: FloatArray = field(init=False)  # (M, 2): how far each edge's wall runs on before and after it
     open_edges: FloatArray = field(init=False)  # and its other edges, bordering unseen space
     corners_xy: FloatArray = field(init=False)  # the polygon shape's own coordinates (N, 2)
+    # A disc holding the view (centre x, y and radius): round its bounding box's centre, not the
+    # sensor, so a field of view's wedge fills more of it; two views whose discs lie apart
+    # cannot overlap (the neighbourhood walk's test of most views it refuses).
+    disc_xyr: FloatArray = field(init=False)
     version: int = field(init=False, default=0)  # bumped by every :meth:`close`
     # (version, min size, indices): the open frontier vertices worth a flight, see frontiers.py
     targetable_memo: tuple[int, float, NDArray[np.intp]] | None = field(init=False, default=None)
@@ -133,6 +137,9 @@ class Keyframe:
         self.wall_runs = _wall_runs(self.walls)
         self.open_edges = self.polygon.open_segments()
         self.corners_xy = shapely.get_coordinates(self.polygon.shape)
+        centre = (self.corners_xy.min(axis=0) + self.corners_xy.max(axis=0)) / 2.0
+        reach = float(np.max(np.hypot(*(self.corners_xy - centre).T)))
+        self.disc_xyr = np.array([centre[0], centre[1], reach])
 
     def open_frontier_indices(self) -> NDArray[np.intp]:
         """The open frontier vertices (read-only, memoised until the next :meth:`close`)."""
@@ -287,6 +294,7 @@ class LocalMap:
         self._views: dict[int, LocalView] = {}
         self._next_id = 0
         self._radii_m: FloatArray = np.zeros(0)  # by id (ids count up from 0): an array, indexed per walk level
+        self._discs: FloatArray = np.zeros((0, 3))  # each view's Keyframe.disc_xyr, by id likewise
         # keyframe -> its view when its frontiers were last judged for slivers, and which were
         self._sliver_judged: dict[int, tuple[LocalView, set[int]]] = {}
         self.loop_closures = 0
@@ -311,6 +319,7 @@ class LocalMap:
         kf = Keyframe(kf_id, stamp_s, odom_pose, polygon)
         self.keyframes[kf_id] = kf
         self._radii_m = np.append(self._radii_m, kf.radius_m)  # a copy per keyframe, not per query
+        self._discs = np.vstack((self._discs, kf.disc_xyr))
         self.graph.add_keyframe(kf_id)
         self._neighbours[kf_id] = {}
         self._hops[kf_id] = {}
@@ -605,6 +614,14 @@ class LocalMap:
             radii = self._radii_m[ids]
             out: NDArray[np.bool_] = np.hypot(rows[:, 0], rows[:, 1]) <= kf.radius_m + radii
             near = np.flatnonzero(out)
+            if near.size == 0:
+                return out
+            # Discs that lie apart (by more than any rounding) settle most views refused.
+            discs = self._discs[np.asarray(ids)[near]]
+            centres = apply_each(rows[near], discs[:, :2], np.arange(near.size))
+            gap = np.hypot(*(centres - kf.disc_xyr[:2]).T) - discs[:, 2] - kf.disc_xyr[2]
+            out[near[gap > 1e-6]] = False
+            near = near[gap <= 1e-6]
             if near.size == 0:
                 return out
             # A corner of the other view inside this one settles it without building the moved
