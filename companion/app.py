@@ -206,12 +206,18 @@ def planner_params(with_loop_closures: bool) -> PlannerParams:
 
 
 LoopClosureSource = Literal["back_end", "scan_matching", "none"]
+THESIS_DRIFT_M = 0.1  # the thesis's odometry drift: one sigma per axis after a metre (MemoryAlignParams')
 
 
-def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) -> ExplorerParams:
+def tuning_for(
+    loop_closures: LoopClosureSource, drift_m_per_keyframe: float, drift_sigma_m_per_sqrt_m: float = THESIS_DRIFT_M
+) -> ExplorerParams:
     """The explorer's tuning for where loop closures come from: ``back_end`` (a SLAM back end:
     Zenoh, or the simulator's), ``scan_matching`` (the companion matches its own views, see
-    companion.core.loop_closing) or ``none``.
+    companion.core.loop_closing) or ``none``; and for how far the odometry drifts
+    (``drift_sigma_m_per_sqrt_m``, one sigma per axis after a metre: the remembered returns'
+    alignment weighs it as its prior, and what the alignment leaves unknown widens the berth the
+    lead keeps from them; the heading's share as in the thesis's drift).
 
     Matched closures are sparse (a 90-degree view matches only views that face its way), so the
     map and planner keep the tuning for no closures, and flying back the vehicle takes a view
@@ -250,6 +256,16 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
         raise ValueError(f"unknown loop-closure source {loop_closures!r}")
     back_end = loop_closures == "back_end"
     params = ExplorerParams(map=map_params(back_end, drift_m_per_keyframe), planner=planner_params(back_end))
+    drift = params.obstacle_memory_align
+    scale = drift_sigma_m_per_sqrt_m / THESIS_DRIFT_M
+    params = replace(
+        params,
+        obstacle_memory_align=replace(
+            drift,
+            drift_xy_m_per_sqrt_m=drift.drift_xy_m_per_sqrt_m * scale,
+            drift_yaw_rad_per_sqrt_m=drift.drift_yaw_rad_per_sqrt_m * scale,
+        ),
+    )
     if not back_end:
         params = replace(
             params,
@@ -271,7 +287,10 @@ def tuning_for(loop_closures: LoopClosureSource, drift_m_per_keyframe: float) ->
 def explorer_params(config: Config) -> ExplorerParams:
     """The tuning a config implies (see :func:`tuning_for`); the setpoint lead bounds the speed."""
     source: LoopClosureSource = "back_end" if config.inputs.loop_closure == "zenoh" else config.inputs.loop_closure
-    params = tuning_for(source, config.exploration.odometry_drift_m_per_keyframe)
+    exploration = config.exploration
+    params = tuning_for(
+        source, exploration.odometry_drift_m_per_keyframe, exploration.odometry_drift_sigma_m_per_sqrt_m
+    )
     lead = replace(
         params.lead, max_lead_m=config.vehicle.max_setpoint_lead_m, model_accel_mps2=config.vehicle.braking_accel_mps2
     )

@@ -88,6 +88,15 @@ def _parser() -> argparse.ArgumentParser:
         "exploration.odometry_drift_m_per_keyframe in a config (default 0.05)",
     )
     sim.add_argument(
+        "--odometry-drift-sigma",
+        type=_positive(float),
+        default=0.1,
+        metavar="M",
+        help="how far the companion takes the odometry to drift, one sigma per axis after a metre, as "
+        "exploration.odometry_drift_sigma_m_per_sqrt_m in a config (default 0.1, the thesis's; "
+        "--noise-scale 1): the berth kept from remembered returns grows with it",
+    )
+    sim.add_argument(
         "--odometry-matching",
         choices=("on", "off"),
         help="correct each keyframe's odometry edge by matching its view to the previous one's, as "
@@ -121,7 +130,7 @@ def _explore(
 ) -> RunTrace:
     sources: dict[str, LoopClosureSource] = {"simulated": "back_end", "scan-matching": "scan_matching", "none": "none"}
     source = sources[args.loop_closures]
-    explorer_params = tuning_for(source, args.odometry_drift_per_keyframe)
+    explorer_params = tuning_for(source, args.odometry_drift_per_keyframe, args.odometry_drift_sigma)
     if args.odometry_matching is not None:
         matching = replace(explorer_params.odometry_matching, enabled=args.odometry_matching == "on")
         explorer_params = replace(explorer_params, odometry_matching=matching)

@@ -77,6 +77,18 @@ class ExplorationConfig(_Strict):
             "without loop closures must use a small value to finish (see docs/interfaces.md)"
         ),
     )
+    odometry_drift_sigma_m_per_sqrt_m: float = Field(
+        0.1,
+        gt=0.0,
+        le=2.0,
+        description=(
+            "how far the odometry drifts, one standard deviation per axis after a metre of flight "
+            "(growing with the square root of the distance): the berth kept from remembered returns "
+            "out of the sensor's view grows with it, as far as aligning them to new scans cannot "
+            "fix (with a SLAM back end). 0.1 is the thesis's drift; at twice that drift with 0.1, a "
+            "vehicle slid into a corner it had seen 2 s before (docs/benchmarks.md, session 57)"
+        ),
+    )
     match_odometry_edges: bool | None = Field(
         None,
         description=(
