@@ -79,7 +79,7 @@ class ExplorationConfig(_Strict):
     )
     odometry_drift_sigma_m_per_sqrt_m: float = Field(
         0.1,
-        gt=0.0,
+        ge=0.0,
         le=2.0,
         description=(
             "how far the odometry drifts, one standard deviation per axis after a metre of flight "

@@ -127,7 +127,7 @@ def test_the_configured_odometry_drift_sets_the_remembered_returns_prior_and_the
     assert doubled.drift_xy_m_per_sqrt_m == pytest.approx(2 * default.drift_xy_m_per_sqrt_m)
     assert doubled.drift_yaw_rad_per_sqrt_m == pytest.approx(2 * default.drift_yaw_rad_per_sqrt_m)
     with pytest.raises(ValueError):
-        Config.model_validate({"vehicle": vehicle, "exploration": {"odometry_drift_sigma_m_per_sqrt_m": 0.0}})
+        Config.model_validate({"vehicle": vehicle, "exploration": {"odometry_drift_sigma_m_per_sqrt_m": -0.1}})
 
 
 def test_at_twice_the_thesiss_drift_configured_for_it_the_vehicle_keeps_off_remembered_walls(shipped_maps):
