@@ -126,7 +126,7 @@ class Keyframe:
     targetable_memo: tuple[int, float, NDArray[np.intp]] | None = field(init=False, default=None)
     open_memo: tuple[int, NDArray[np.intp]] | None = field(init=False, default=None)
     wall_facts_memo: tuple[int, _WallFacts] | None = field(init=False, default=None)
-    # every vertex's _past_end_m and _loose_limit (the polygon's, so computed once)
+    # every vertex's _past_end_m and _loose_limit (the polygon's and its map's params: computed once)
     past_end_m: FloatArray | None = field(init=False, default=None)
     loose_limit: NDArray[np.bool_] | None = field(init=False, default=None)
 
