@@ -206,18 +206,18 @@ def planner_params(with_loop_closures: bool) -> PlannerParams:
 
 
 LoopClosureSource = Literal["back_end", "scan_matching", "none"]
-THESIS_DRIFT_M = 0.1  # the thesis's odometry drift: one sigma per axis after a metre (MemoryAlignParams')
 
 
 def tuning_for(
-    loop_closures: LoopClosureSource, drift_m_per_keyframe: float, drift_sigma_m_per_sqrt_m: float = THESIS_DRIFT_M
+    loop_closures: LoopClosureSource, drift_m_per_keyframe: float, drift_sigma_m_per_sqrt_m: float | None = None
 ) -> ExplorerParams:
     """The explorer's tuning for where loop closures come from: ``back_end`` (a SLAM back end:
     Zenoh, or the simulator's), ``scan_matching`` (the companion matches its own views, see
     companion.core.loop_closing) or ``none``; and for how far the odometry drifts
     (``drift_sigma_m_per_sqrt_m``, one sigma per axis after a metre: the remembered returns'
     alignment weighs it as its prior, and what the alignment leaves unknown widens the berth the
-    lead keeps from them; the heading's share as in the thesis's drift).
+    lead keeps from them; None: ``MemoryAlignParams``' own, the thesis's drift; the heading's
+    share as there).
 
     Matched closures are sparse (a 90-degree view matches only views that face its way), so the
     map and planner keep the tuning for no closures, and flying back the vehicle takes a view
@@ -256,16 +256,17 @@ def tuning_for(
         raise ValueError(f"unknown loop-closure source {loop_closures!r}")
     back_end = loop_closures == "back_end"
     params = ExplorerParams(map=map_params(back_end, drift_m_per_keyframe), planner=planner_params(back_end))
-    drift = params.obstacle_memory_align
-    scale = drift_sigma_m_per_sqrt_m / THESIS_DRIFT_M
-    params = replace(
-        params,
-        obstacle_memory_align=replace(
-            drift,
-            drift_xy_m_per_sqrt_m=drift.drift_xy_m_per_sqrt_m * scale,
-            drift_yaw_rad_per_sqrt_m=drift.drift_yaw_rad_per_sqrt_m * scale,
-        ),
-    )
+    if drift_sigma_m_per_sqrt_m is not None:
+        drift = params.obstacle_memory_align
+        scale = drift_sigma_m_per_sqrt_m / drift.drift_xy_m_per_sqrt_m  # the thesis's: 1
+        params = replace(
+            params,
+            obstacle_memory_align=replace(
+                drift,
+                drift_xy_m_per_sqrt_m=drift.drift_xy_m_per_sqrt_m * scale,
+                drift_yaw_rad_per_sqrt_m=drift.drift_yaw_rad_per_sqrt_m * scale,
+            ),
+        )
     if not back_end:
         params = replace(
             params,
