@@ -3,6 +3,8 @@
 import math
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan
@@ -115,3 +117,49 @@ def test_what_the_walls_do_not_fix_adds_to_how_far_off_the_memory_may_lie():
     assert 0.9 * prior_m < along < 1.2 * prior_m
     open_space = np.zeros((0, 2, 2))
     assert sigma_after(ROOM, Pose2(2.0, 2.0, 0.0), Pose2(2.3, 2.0, 0.1), open_space) > prior_m
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.booleans(), st.integers(0, 6), st.floats(-0.5, 1.0), st.floats(0.0, 0.8), st.integers(0, 2**16))
+    )
+)
+def test_the_memory_keeps_each_scan_by_its_age_travel_and_what_was_forgotten(ops):
+    """The memory's bookkeeping against a plain list of scans: a scan leaves after ``memory_s``
+    seconds or ``memory_m`` metres, or when the clock goes back past it; forgetting points drops a
+    scan left with none, never the newest; each point's sigma is its own scan's."""
+    memory = RecentReturns(1.0, 1.5, align=MemoryAlignParams())
+    model: list[tuple[float, float, np.ndarray]] = []  # stamp, travel, points
+    stamp, travel, label = 0.0, 0.0, 0.0
+    for forget, count, dt_s, dm, bits in ops:
+        if forget and model:
+            points = np.vstack([m[2] for m in model])
+            mask = np.array([(bits >> (i % 16)) & 1 == 1 for i in range(points.shape[0])], dtype=bool)
+            memory.keep(mask)
+            start, kept = 0, []
+            for i, (s, t, p) in enumerate(model):
+                left = p[mask[start : start + p.shape[0]]]
+                start += p.shape[0]
+                if left.shape[0] or i == len(model) - 1:
+                    kept.append((s, t, left))
+            model = kept
+            continue
+        stamp, travel = stamp + dt_s, travel + dm
+        points = label + np.arange(2 * count, dtype=np.float64).reshape(-1, 2) / 100.0
+        label += 1.0
+        memory.add(stamp, travel, points)
+        model = [m for m in model if m[0] <= stamp]
+        model.append((stamp, travel, points))
+        model = [m for m in model if m[0] >= stamp - 1.0 - 1e-9 and m[1] >= travel - 1.5]
+    expected = np.vstack([m[2] for m in model]) if model else np.zeros((0, 2))
+    assert np.array_equal(memory.points_xy(), expected)
+    assert memory.newest_count() == (model[-1][2].shape[0] if model else 0)
+    if model:
+        # After one alignment with nothing to align to, each scan's sigma grows by the same
+        # amount: every point still carries one (its scan's), the newest's included.
+        memory.align(
+            DepthScan(stamp + 0.1, BEARINGS, np.full(BEARINGS.size, np.inf), 5.0), Pose2(50.0, 50.0, 0.0), travel, 0.02
+        )
+        sigmas = memory.sigmas_m()
+        assert sigmas.shape == (expected.shape[0],) and np.all(sigmas > 0.0)

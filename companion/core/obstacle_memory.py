@@ -25,7 +25,6 @@ and the lead gives a return that much more berth (``LeadParams.memory_sigmas``).
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -71,12 +70,14 @@ class MemoryAlignParams:
 @dataclass(frozen=True, slots=True)
 class ScanWalls:
     """A scan's surfaces, ray by ray, in its sensor's frame: ``starts_xy[j]`` to ``ends_xy[j]`` joins
-    ray j's return to ray j+1's, where ``ok[j]`` (both returned, no farther apart than the gap)."""
+    ray j's return to ray j+1's, where ``ok[j]`` (both returned, no farther apart than the gap);
+    ``normals_xy[j]`` is its unit normal (each alignment asks it of every pairing again)."""
 
     bearings_rad: FloatArray
     starts_xy: FloatArray
     ends_xy: FloatArray
     ok: NDArray[np.bool_]
+    normals_xy: FloatArray
 
 
 def scan_walls(scan: DepthScan, no_return_margin_m: float, max_gap_m: float) -> ScanWalls:
@@ -87,8 +88,10 @@ def scan_walls(scan: DepthScan, no_return_margin_m: float, max_gap_m: float) -> 
     r = np.where(hit, scan.ranges_m, 0.0)
     b = scan.bearings_rad
     pts = np.column_stack((r * np.cos(b), r * np.sin(b)))
-    gap = np.hypot(*(pts[1:] - pts[:-1]).T)
-    return ScanWalls(b, pts[:-1], pts[1:], hit[:-1] & hit[1:] & (gap <= max_gap_m))
+    seg = pts[1:] - pts[:-1]
+    gap = np.hypot(seg[:, 0], seg[:, 1])
+    normals = np.column_stack((-seg[:, 1], seg[:, 0])) / np.maximum(gap, 1e-12)[:, None]
+    return ScanWalls(b, pts[:-1], pts[1:], hit[:-1] & hit[1:] & (gap <= max_gap_m), normals)
 
 
 class Alignment(NamedTuple):
@@ -139,26 +142,18 @@ def _pair_with_walls(
     j = np.searchsorted(b, np.arctan2(points_xy[:, 1], points_xy[:, 0])) - 1
     inside = (j >= 0) & (j < b.size - 1)
     j = np.where(inside, j, 0)
-    start, seg = walls.starts_xy[j], walls.ends_xy[j] - walls.starts_xy[j]
-    normals = np.column_stack((-seg[:, 1], seg[:, 0])) / np.maximum(np.hypot(seg[:, 0], seg[:, 1]), 1e-12)[:, None]
+    start, normals = walls.starts_xy[j], walls.normals_xy[j]
     off = np.abs(np.einsum("nk,nk->n", normals, points_xy - start))
     return inside & walls.ok[j], start, normals, off
 
 
-class _Scan(NamedTuple):
-    """One scan's remembered returns (odometry frame) and how far off they may lie by now."""
-
-    stamp_s: float
-    travelled_m: float
-    points_xy: FloatArray
-    # The covariance (x, y) of where they lie relative to the vehicle: the drift since the scan
-    # that the alignments since could not take out.
-    covariance: FloatArray
-
-
 class RecentReturns:
     """Obstacle returns of the scans of the last ``memory_s`` seconds and ``memory_m`` metres of
-    travel, in the odometry frame."""
+    travel, in the odometry frame.
+
+    Held as one array of points, oldest scan first, beside each scan's stamp, travel, point count
+    and covariance: a step moves, grows and asks all of them, so each is one numpy call, not one
+    per scan."""
 
     def __init__(
         self, memory_s: float, memory_m: float, margin_m: float = 0.0, align: MemoryAlignParams | None = None
@@ -168,38 +163,50 @@ class RecentReturns:
         self.margin_m = margin_m  # see in_view: seen through this near the view's edge, kept
         # Not aligned unless told: perfect poses (the grid baseline's) leave nothing to align.
         self.align_params = align or MemoryAlignParams(enabled=False)
-        self._scans: deque[_Scan] = deque()
+        self._points: FloatArray = np.zeros((0, 2))  # every scan's, oldest first (odometry frame)
+        self._stamps_s: list[float] = []
+        self._travelled_m: list[float] = []
+        self._counts: list[int] = []  # each scan's number of points
+        # Each scan's covariance (x, y) of where its points lie relative to the vehicle: the drift
+        # since the scan that the alignments since could not take out.
+        self._covariances: FloatArray = np.zeros((0, 2, 2))
 
     def add(self, stamp_s: float, travelled_m: float, points_xy: FloatArray) -> None:
-        while self._scans and self._scans[-1].stamp_s > stamp_s:  # the clock went back
-            self._scans.pop()
-        self._scans.append(_Scan(stamp_s, travelled_m, points_xy, np.zeros((2, 2))))
-        while (
-            self._scans[0].stamp_s < stamp_s - self.memory_s - 1e-9
-            or self._scans[0].travelled_m < travelled_m - self.memory_m
+        drop_last = 0
+        while drop_last < len(self._stamps_s) and self._stamps_s[-1 - drop_last] > stamp_s:  # the clock went back
+            drop_last += 1
+        kept = len(self._stamps_s) - drop_last
+        drop_first = 0
+        while drop_first < kept and (
+            self._stamps_s[drop_first] < stamp_s - self.memory_s - 1e-9
+            or self._travelled_m[drop_first] < travelled_m - self.memory_m
         ):
-            self._scans.popleft()
+            drop_first += 1
+        first, last = sum(self._counts[:drop_first]), sum(self._counts[:kept])
+        self._points = np.vstack((self._points[first:last], np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)))
+        self._stamps_s = [*self._stamps_s[drop_first:kept], stamp_s]
+        self._travelled_m = [*self._travelled_m[drop_first:kept], travelled_m]
+        self._counts = [*self._counts[drop_first:kept], int(self._points.shape[0] - (last - first))]
+        self._covariances = np.concatenate((self._covariances[drop_first:kept], np.zeros((1, 2, 2))))
 
     def points_xy(self) -> FloatArray:
-        if not self._scans:
-            return np.zeros((0, 2))
-        return np.vstack([scan.points_xy for scan in self._scans])
+        return self._points
 
     def sigmas_m(self) -> FloatArray:
         """How far off each of :meth:`points_xy` may lie by now (one standard deviation, along its
         worst axis): the drift since its scan that no alignment took out (0 without alignment)."""
-        if not self._scans:
+        if not self._counts:
             return np.zeros(0)
-        worst = [math.sqrt(max(0.0, float(np.linalg.eigvalsh(scan.covariance)[-1]))) for scan in self._scans]
-        return np.repeat(worst, [scan.points_xy.shape[0] for scan in self._scans])
+        worst = np.sqrt(np.maximum(0.0, np.linalg.eigvalsh(self._covariances)[:, -1]))
+        return np.repeat(worst, self._counts)
 
     def newest_count(self) -> int:
         """How many of :meth:`points_xy` (the last ones) are the newest scan's."""
-        return int(self._scans[-1].points_xy.shape[0]) if self._scans else 0
+        return self._counts[-1] if self._counts else 0
 
     def shift(self, correction: Pose2) -> None:
         """Re-express the points after an estimator reset (``new = correction ∘ old``)."""
-        self._scans = deque(scan._replace(points_xy=correction.apply(scan.points_xy)) for scan in self._scans)
+        self._points = correction.apply(self._points)
 
     def align(self, scan: DepthScan, sensor: Pose2, travelled_m: float, no_return_margin_m: float) -> Pose2 | None:
         """Move the remembered returns onto ``scan`` (taken at ``sensor``, not yet added) where its
@@ -208,12 +215,12 @@ class RecentReturns:
         off the memory may lie (:meth:`sigmas_m`). Returns the motion applied (odometry frame),
         or None when none was: too few remembered returns on its walls to tell."""
         p = self.align_params
-        if not p.enabled or not self._scans:
+        if not p.enabled or not self._counts:
             return None
-        travel_root = math.sqrt(max(0.0, travelled_m - self._scans[-1].travelled_m))
+        travel_root = math.sqrt(max(0.0, travelled_m - self._travelled_m[-1]))
         sigma_xy_m = p.min_sigma_xy_m + p.drift_xy_m_per_sqrt_m * travel_root
         sigma_yaw_rad = p.min_sigma_yaw_rad + p.drift_yaw_rad_per_sqrt_m * travel_root
-        pts = self.points_xy()
+        pts = self._points
         seen = pts[in_view(scan, sensor, pts)]
         # In the sensor's frame: a heading error swings the memory about where the vehicle is.
         local = sensor.inverse()
@@ -230,7 +237,7 @@ class RecentReturns:
         co, si = math.cos(sensor.yaw_rad), math.sin(sensor.yaw_rad)
         turn = np.array([[co, -si], [si, co]])
         added = turn @ covariance[:2, :2] @ turn.T + covariance[2, 2] * p.lever_m**2 * np.eye(2)
-        self._scans = deque(old._replace(covariance=old.covariance + added) for old in self._scans)
+        self._covariances = self._covariances + added
         if found is None:
             return None
         motion = sensor.compose(found.motion).compose(local)
@@ -244,7 +251,7 @@ class RecentReturns:
         within ``margin_m`` of its edge), or its own points (when it was added already: it is
         the newest kept, at its stamp)."""
         pts = self.points_xy()
-        added = bool(self._scans) and self._scans[-1].stamp_s == scan.stamp_s
+        added = bool(self._stamps_s) and self._stamps_s[-1] == scan.stamp_s
         older = pts.shape[0] - (self.newest_count() if added else 0)
         covered = in_view(scan, sensor, pts[:older], self.margin_m)
         if covered.any():
@@ -253,10 +260,15 @@ class RecentReturns:
     def keep(self, mask: NDArray[np.bool_]) -> None:
         """Forget the points whose entry in ``mask`` (one per point of :meth:`points_xy`) is False;
         a scan left with none is dropped, the newest kept (see :meth:`newest_count`)."""
-        start, kept = 0, deque[_Scan]()
-        for i, scan in enumerate(self._scans):
-            left = scan.points_xy[mask[start : start + scan.points_xy.shape[0]]]
-            start += scan.points_xy.shape[0]
-            if left.shape[0] or i == len(self._scans) - 1:
-                kept.append(scan._replace(points_xy=left))
-        self._scans = kept
+        if not self._counts:
+            return
+        ends = np.cumsum(self._counts)
+        kept_before = np.concatenate(([0], np.cumsum(mask)))
+        counts = kept_before[ends] - kept_before[ends - np.asarray(self._counts, dtype=np.intp)]
+        stays = counts > 0
+        stays[-1] = True
+        self._points = self._points[mask]
+        self._stamps_s = [v for v, ok in zip(self._stamps_s, stays, strict=True) if ok]
+        self._travelled_m = [v for v, ok in zip(self._travelled_m, stays, strict=True) if ok]
+        self._counts = [int(c) for c in counts[stays]]
+        self._covariances = self._covariances[stays]

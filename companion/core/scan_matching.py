@@ -227,10 +227,11 @@ def solve_step(
     ``prior = (pose, guess, weights)`` also pulls the source origin and heading (now at
     ``pose``) back towards ``guess``, each axis weighed as the scan's residuals are; with
     ``robust_m`` each residual r weighs 1 / (1 + (r / robust_m)^2) (Cauchy)."""
-    c = points_xy.mean(axis=0)
+    c = np.add.reduce(points_xy, axis=0) / points_xy.shape[0]  # the mean, without np.mean's overhead
     rel = points_xy - c
-    lever = normals[:, 1] * rel[:, 0] - normals[:, 0] * rel[:, 1]  # n . perp(p - c)
-    jac = np.column_stack((normals, lever))
+    jac = np.empty((points_xy.shape[0], 3))
+    jac[:, :2] = normals
+    jac[:, 2] = normals[:, 1] * rel[:, 0] - normals[:, 0] * rel[:, 1]  # n . perp(p - c)
     resid = np.einsum("nk,nk->n", normals, points_xy - closest_xy)
     w = np.ones_like(resid) if robust_m is None else 1.0 / (1.0 + (resid / robust_m) ** 2)
     lhs, rhs = jac.T @ (w[:, None] * jac) + 1e-9 * np.eye(3), -jac.T @ (w * resid)
@@ -243,7 +244,7 @@ def solve_step(
         lhs += a.T @ (weights[:, None] * a)
         rhs -= a.T @ (weights * off)
     delta = np.linalg.solve(lhs, rhs)
-    tx, ty, dyaw = (float(v) for v in delta)
+    tx, ty, dyaw = delta.tolist()
     co, si = math.cos(dyaw), math.sin(dyaw)
     # p -> c + R (p - c) + t  ==  R p + (c - R c + t)
     return Pose2(c[0] - (co * c[0] - si * c[1]) + tx, c[1] - (si * c[0] + co * c[1]) + ty, dyaw)
