@@ -44,7 +44,7 @@ def test_a_level_walk_bridges_a_few_refused_keyframes_in_a_row_and_returns_only_
     goes on through them to 5 and 6, with their true hop counts; with two it stops at 4."""
     g = chain(8)
 
-    def accept(ids: list[int], poses: list[Pose2]) -> np.ndarray:
+    def accept(ids: list[int], rows: np.ndarray) -> np.ndarray:
         return np.array([k not in (2, 3, 4) for k in ids], dtype=bool)
 
     bridged = {v.keyframe_id: v.hops for v in g.walk_levels(0, accept, bridge_hops=3)}
@@ -67,12 +67,12 @@ def _random_graph(rng: random.Random, n: int) -> PoseGraph:
     return g
 
 
-def _near_and_not(refused: set[int], calls: list[int]) -> Callable[[list[int], list[Pose2]], np.ndarray]:
+def _near_and_not(refused: set[int], calls: list[int]) -> Callable[[list[int], np.ndarray], np.ndarray]:
     """A level filter: keyframes within 4 m of the start and not ``refused``; counts its calls."""
 
-    def accept(ids: list[int], poses: list[Pose2]) -> np.ndarray:
+    def accept(ids: list[int], rows: np.ndarray) -> np.ndarray:
         calls.append(len(ids))
-        return np.array([k not in refused and math.hypot(p.x_m, p.y_m) < 4.0 for k, p in zip(ids, poses, strict=True)])
+        return np.array([k not in refused and math.hypot(x, y) < 4.0 for k, (x, y, _) in zip(ids, rows, strict=True)])
 
     return accept
 

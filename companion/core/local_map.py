@@ -608,9 +608,8 @@ class LocalMap:
         kf = self.keyframes[kf_id]
         shape = kf.polygon.shape
 
-        def overlaps(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
-            """Which of these views, at these poses, overlap this one (all at once)."""
-            rows = np.array([(p.x_m, p.y_m, p.yaw_rad) for p in poses]).reshape(-1, 3)
+        def overlaps(ids: list[int], rows: FloatArray) -> NDArray[np.bool_]:
+            """Which of these views, at these poses (rows of x, y, yaw), overlap this one (all at once)."""
             radii = self._radii_m[ids]
             out: NDArray[np.bool_] = np.hypot(rows[:, 0], rows[:, 1]) <= kf.radius_m + radii
             near = np.flatnonzero(out)

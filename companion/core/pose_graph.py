@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.core.errors import GraphError
-from companion.core.geometry import FloatArray, Pose2
+from companion.core.geometry import FloatArray, Pose2, wrap_angle
 
 
 class EdgeType(Enum):
@@ -87,6 +87,21 @@ class _ReachedCache:
         return self.arrays
 
 
+_Row = tuple[float, float, float]  # a pose as plain floats: x_m, y_m, yaw_rad
+
+
+def _compose(pose: _Row, rel: Pose2) -> _Row:
+    """:meth:`Pose2.compose` on plain floats (the same arithmetic, so the same bits)."""
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (x + c * rel.x_m - s * rel.y_m, y + s * rel.x_m + c * rel.y_m, wrap_angle(yaw + rel.yaw_rad))
+
+
+def _rows(poses: list[_Row]) -> FloatArray:
+    """Poses as an (N, 3) array of ``x_m, y_m, yaw_rad``."""
+    return np.array(poses, dtype=np.float64).reshape(-1, 3)
+
+
 class PoseGraph:
     """Keyframe ids and the edges between them; adjacency kept both ways."""
 
@@ -146,7 +161,8 @@ class PoseGraph:
         expanded: the walk stops along that branch. Poses compose along the first path found.
         """
 
-        def each(ids: list[int], poses: list[Pose2]) -> NDArray[np.bool_]:
+        def each(ids: list[int], rows: FloatArray) -> NDArray[np.bool_]:
+            poses = [Pose2(*row) for row in rows.tolist()]
             return np.array([accept is None or accept(k, p) for k, p in zip(ids, poses, strict=True)], dtype=bool)
 
         return self.walk_levels(start_id, each)
@@ -154,69 +170,71 @@ class PoseGraph:
     def walk_levels(
         self,
         start_id: int,
-        accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]],
+        accept: Callable[[list[int], FloatArray], NDArray[np.bool_]],
         bridge_hops: int = 0,
         still_m: float = 0.0,
         ahead: int = 0,
     ) -> list[Visit]:
         """:meth:`walk`, with ``accept`` asked once per hop count for every keyframe first met at
-        that count (ids and poses in the start's frame, in the walk's order), so it can test them
-        all in one vectorised pass. The walk goes on through up to ``bridge_hops`` refused
-        keyframes in a row (not returned): past a turn in place, say, whose views look away.
-        A refused keyframe reached by an edge shorter than ``still_m`` does not count towards
-        them: a whole turn in place (ten views at one spot) is bridged, at any length (when the
-        walk bridges at all: ``bridge_hops`` > 0).
+        that count (ids, and poses in the start's frame as rows of ``x_m, y_m, yaw_rad``, in the
+        walk's order), so it can test them all in one vectorised pass. The walk goes on through
+        up to ``bridge_hops`` refused keyframes in a row (not returned): past a turn in place,
+        say, whose views look away. A refused keyframe reached by an edge shorter than
+        ``still_m`` does not count towards them: a whole turn in place (ten views at one spot)
+        is bridged, at any length (when the walk bridges at all: ``bridge_hops`` > 0).
 
         With ``ahead`` > 0, ``accept`` must judge each keyframe by its id and pose alone: each
         call then also asks about up to ``ahead`` keyframes beyond the level, walked on without
         a filter (:meth:`_judge_ahead`), and a later level takes those answers where it meets the
         keyframe at the very same pose. The same walk in a few calls instead of one per hop:
         along a chain of views most levels hold one or two keyframes, and a call's fixed cost
-        was most of the walk's time."""
+        was most of the walk's time. Poses compose on plain floats (:func:`_compose`, the same
+        arithmetic as :meth:`Pose2.compose`): only a visit's becomes a :class:`Pose2`."""
         if start_id not in self._adjacency:
             raise GraphError(f"keyframe {start_id} is not in the graph")
         seen = {start_id}
         out = [Visit(start_id, 0, Pose2.identity())]
-        level: list[tuple[Visit, int]] = [(out[0], 0)]  # each with the refused keyframes in a row up to it
-        judged: dict[int, tuple[Pose2, bool]] = {}  # asked ahead of the walk (``ahead``), at that pose
+        # Each keyframe to go on from: its id, pose and the refused keyframes in a row up to it.
+        level: list[tuple[int, _Row, int]] = [(start_id, (0.0, 0.0, 0.0), 0)]
+        judged: dict[int, tuple[_Row, bool]] = {}  # asked ahead of the walk (``ahead``), at that pose
+        hops = 0
         while level:
             ids: list[int] = []
-            poses: list[Pose2] = []
+            poses: list[_Row] = []
             misses: list[int] = []
-            for visit, miss in level:
-                for nbr, rel in self._adjacency[visit.keyframe_id]:
+            for kf_id, pose, miss in level:
+                for nbr, rel in self._adjacency[kf_id]:
                     if nbr not in seen:
                         seen.add(nbr)
                         ids.append(nbr)
-                        poses.append(visit.pose_in_start.compose(rel))
+                        poses.append(_compose(pose, rel))
                         moved = still_m <= 0.0 or bridge_hops == 0 or math.hypot(rel.x_m, rel.y_m) >= still_m
                         misses.append(miss + 1 if moved else miss)
-            hops = level[0][0].hops + 1
+            hops += 1
             if not ids:
-                ok = np.zeros(0, dtype=bool)
+                ok: list[bool] = []
             elif ahead > 0:
                 ok = self._judge_ahead(ids, poses, accept, judged, seen, ahead)
             else:
-                ok = accept(ids, poses)
+                ok = accept(ids, _rows(poses)).tolist()
             level = []
             for k, pose, keep, miss in zip(ids, poses, ok, misses, strict=True):
-                visit = Visit(k, hops, pose)
                 if keep:
-                    out.append(visit)
-                    level.append((visit, 0))
+                    out.append(Visit(k, hops, Pose2(*pose)))
+                    level.append((k, pose, 0))
                 elif miss <= bridge_hops:
-                    level.append((visit, miss))
+                    level.append((k, pose, miss))
         return out
 
     def _judge_ahead(
         self,
         ids: list[int],
-        poses: list[Pose2],
-        accept: Callable[[list[int], list[Pose2]], NDArray[np.bool_]],
-        judged: dict[int, tuple[Pose2, bool]],
+        poses: list[_Row],
+        accept: Callable[[list[int], FloatArray], NDArray[np.bool_]],
+        judged: dict[int, tuple[_Row, bool]],
         seen: set[int],
         ahead: int,
-    ) -> NDArray[np.bool_]:
+    ) -> list[bool]:
         """``accept`` for one level of :meth:`walk_levels`: answers ``judged`` holds for a
         keyframe at that very pose, and one call for the rest together with up to ``ahead``
         keyframes beyond them (breadth first from them, poses composed as the walk composes them,
@@ -233,15 +251,15 @@ class PoseGraph:
                     if nbr in seen or nbr in met or extra >= ahead:
                         continue
                     met.add(nbr)
-                    nbr_pose = pose.compose(rel)
+                    nbr_pose = _compose(pose, rel)
                     ask_ids.append(nbr)
                     ask_poses.append(nbr_pose)
                     queue.append((nbr, nbr_pose))
                     extra += 1
-            answers = accept(ask_ids, ask_poses)
+            answers = accept(ask_ids, _rows(ask_poses))
             for k, pose, ok in zip(ask_ids, ask_poses, answers.tolist(), strict=True):
                 judged[k] = (pose, bool(ok))
-        return np.array([judged[k][1] for k in ids], dtype=bool)
+        return [judged[k][1] for k in ids]
 
     def order_from(self, start_id: int) -> list[int]:
         """Every keyframe connected to ``start_id``, nearest (in hops) first, in :meth:`walk`'s
