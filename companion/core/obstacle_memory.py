@@ -183,14 +183,20 @@ class RecentReturns:
         ):
             drop_first += 1
         first, last = sum(self._counts[:drop_first]), sum(self._counts[:kept])
-        self._points = np.vstack((self._points[first:last], np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)))
+        self._keep_points(np.vstack((self._points[first:last], np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))))
         self._stamps_s = [*self._stamps_s[drop_first:kept], stamp_s]
         self._travelled_m = [*self._travelled_m[drop_first:kept], travelled_m]
         self._counts = [*self._counts[drop_first:kept], int(self._points.shape[0] - (last - first))]
         self._covariances = np.concatenate((self._covariances[drop_first:kept], np.zeros((1, 2, 2))))
 
     def points_xy(self) -> FloatArray:
+        """Every remembered return, oldest scan first (the memory's own array, read-only)."""
         return self._points
+
+    def _keep_points(self, points_xy: FloatArray) -> None:
+        """Hold a new array of points: read-only, since :meth:`points_xy` hands it out."""
+        points_xy.flags.writeable = False
+        self._points = points_xy
 
     def sigmas_m(self) -> FloatArray:
         """How far off each of :meth:`points_xy` may lie by now (one standard deviation, along its
@@ -206,7 +212,7 @@ class RecentReturns:
 
     def shift(self, correction: Pose2) -> None:
         """Re-express the points after an estimator reset (``new = correction ∘ old``)."""
-        self._points = correction.apply(self._points)
+        self._keep_points(correction.apply(self._points))
 
     def align(self, scan: DepthScan, sensor: Pose2, travelled_m: float, no_return_margin_m: float) -> Pose2 | None:
         """Move the remembered returns onto ``scan`` (taken at ``sensor``, not yet added) where its
@@ -267,7 +273,7 @@ class RecentReturns:
         counts = kept_before[ends] - kept_before[ends - np.asarray(self._counts, dtype=np.intp)]
         stays = counts > 0
         stays[-1] = True
-        self._points = self._points[mask]
+        self._keep_points(self._points[mask])
         self._stamps_s = [v for v, ok in zip(self._stamps_s, stays, strict=True) if ok]
         self._travelled_m = [v for v, ok in zip(self._travelled_m, stays, strict=True) if ok]
         self._counts = [int(c) for c in counts[stays]]
