@@ -2,6 +2,10 @@
 
 import json
 import math
+import pathlib
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
@@ -841,3 +845,31 @@ def test_a_scan_that_sees_past_an_open_shadow_vertex_is_taken_as_a_keyframe(occl
     result = ex.step(Odometry(0.1, Pose2(0.45, -0.3, 0.0)), DepthScan(0.1, BEARINGS, second, 5.0))
     assert result.keyframe_added == taken
     assert len(ex.map) == (2 if taken else 1)
+
+
+def test_a_step_imports_no_module():
+    """A step imports nothing: numpy loads some of its own modules on first use (``numpy.ma``,
+    which ``np.unique`` asks), and that import, 10-30 ms, inside the first step that needed it
+    was the slowest step of a flight. In a fresh interpreter, where nothing is loaded yet."""
+    code = textwrap.dedent(
+        """
+        import sys
+        from sitl.runner import PolygonPolicy, run_exploration
+        from sitl.world import load_world
+        world = load_world("config/maps/room.geojson")
+        original, imported = PolygonPolicy.step, []
+        def step(self, frame):
+            before = set(sys.modules)
+            try:
+                return original(self, frame)
+            finally:
+                imported.extend(sorted(set(sys.modules) - before))
+        PolygonPolicy.step = step
+        run_exploration(world, "polygon", seed=1, max_time_s=10.0)
+        print(imported)
+        """
+    )
+    root = pathlib.Path(__file__).resolve().parents[1]
+    run = [sys.executable, "-c", code]
+    out = subprocess.run(run, cwd=root, capture_output=True, text=True, check=True, timeout=300)
+    assert out.stdout.strip().splitlines()[-1] == "[]"
