@@ -1,10 +1,15 @@
 """Frontier runs: which open frontier vertices are worth a flight."""
 
+import math
+
 import numpy as np
 import pytest
 
-from companion.core.fov_polygon import VertexKind
-from companion.core.frontiers import run_brackets, run_sizes_m, walled_runs
+from companion.core.fov_polygon import PolygonParams, VertexKind, scan_to_polygon
+from companion.core.frontiers import run_brackets, run_sizes_m, targetable_indices, walled_runs
+from companion.core.geometry import Pose2
+from companion.core.local_map import Keyframe
+from companion.core.messages import DepthScan
 
 F, W, FREE = VertexKind.FRONTIER, VertexKind.OBSTACLE, VertexKind.FREE  # W: a wall (obstacle)
 
@@ -62,3 +67,23 @@ def test_each_open_vertex_knows_the_vertices_just_before_and_after_its_run():
     assert before.tolist() == [8, -1, 1, 1, -1, -1, 5, -1, -1, 8]
     assert after.tolist() == [1, -1, 4, 4, -1, -1, 7, -1, -1, 1]
     assert (run_brackets(np.full(3, F, dtype=np.int8))[0] == -1).all()
+
+
+def test_the_targetable_vertices_at_each_size_are_remembered_until_a_vertex_closes():
+    """A route search asks every keyframe at two sizes in turn: each size's answer is kept, the
+    same as one computed afresh, until a vertex closes; then each is computed again."""
+    scan = DepthScan(0.0, np.linspace(-math.pi / 4, math.pi / 4, 64), np.full(64, 5.0), 5.0)
+    kf = Keyframe(0, 0.0, Pose2(), scan_to_polygon(scan, PolygonParams(side_frontier_spacing_m=0.0)))
+
+    def fresh(size_m: float) -> np.ndarray:
+        sizes = run_sizes_m(kf.kinds, kf.polygon.vertices_xy)
+        return np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (sizes >= size_m))
+
+    for size_m in (0.6, 0.3, 0.6, 0.3, 4.0):
+        assert np.array_equal(targetable_indices(kf, size_m), fresh(size_m))
+    assert targetable_indices(kf, 0.6) is targetable_indices(kf, 0.6)  # remembered, not recomputed
+    open_now = targetable_indices(kf, 0.3)
+    kf.close(open_now[: open_now.size // 2])
+    for size_m in (0.6, 0.3):
+        assert np.array_equal(targetable_indices(kf, size_m), fresh(size_m))
+    assert targetable_indices(kf, 0.3).size < open_now.size

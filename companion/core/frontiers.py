@@ -116,12 +116,14 @@ def targetable_indices(kf: Keyframe, min_size_m: float) -> NDArray[np.intp]:
     """Open frontier vertices of a keyframe whose run is at least ``min_size_m`` long (memoised
     on the keyframe until a vertex closes: the planner asks for every keyframe it walks past)."""
     memo = kf.targetable_memo
-    if memo is not None and memo[0] == kf.version and memo[1] == min_size_m:
-        return memo[2]
-    sizes = run_sizes_m(kf.kinds, kf.polygon.vertices_xy)
-    idx = np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (sizes >= min_size_m))
-    idx.flags.writeable = False  # shared by every caller until the next change
-    kf.targetable_memo = (kf.version, min_size_m, idx)
+    if memo is None or memo[0] != kf.version:
+        memo = kf.targetable_memo = (kf.version, {})
+    idx = memo[1].get(min_size_m)
+    if idx is None:
+        sizes = run_sizes_m(kf.kinds, kf.polygon.vertices_xy)
+        idx = np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (sizes >= min_size_m))
+        idx.flags.writeable = False  # shared by every caller until the next change
+        memo[1][min_size_m] = idx
     return idx
 
 

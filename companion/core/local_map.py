@@ -122,8 +122,9 @@ class Keyframe:
     # cannot overlap (the neighbourhood walk's test of most views it refuses).
     disc_xyr: FloatArray = field(init=False)
     version: int = field(init=False, default=0)  # bumped by every :meth:`close`
-    # (version, min size, indices): the open frontier vertices worth a flight, see frontiers.py
-    targetable_memo: tuple[int, float, NDArray[np.intp]] | None = field(init=False, default=None)
+    # (version, {min size: indices}): the open frontier vertices worth a flight, see frontiers.py
+    # (a route's search asks each keyframe at two sizes in turn: one memo each)
+    targetable_memo: tuple[int, dict[float, NDArray[np.intp]]] | None = field(init=False, default=None)
     open_memo: tuple[int, NDArray[np.intp]] | None = field(init=False, default=None)
     wall_facts_memo: tuple[int, _WallFacts] | None = field(init=False, default=None)
     # every vertex's _past_end_m and _loose_limit (the polygon's and its map's params: computed once)

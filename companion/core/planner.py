@@ -1334,6 +1334,12 @@ class FrontierPlanner:
     def _has_targets(
         self, local_map: LocalMap, keyframe_id: int, size_m: float, range_limit_only: bool = False
     ) -> bool:
+        if not range_limit_only:  # the common question, asked of every keyframe a route search passes
+            idx = targetable_indices(local_map.keyframes[keyframe_id], max(size_m, self.params.fragment_size_m))
+            if idx.size == 0:
+                return False
+            if not self.set_aside:
+                return True
         return bool(self._targets(local_map, keyframe_id, size_m, range_limit_only=range_limit_only))
 
     def _has_live_targets(
