@@ -19,9 +19,9 @@ from numpy.typing import NDArray
 
 from companion.core.errors import CoreError
 from companion.core.fov_polygon import (
+    KIND_FRONTIER,
     FovPolygon,
     PolygonParams,
-    VertexKind,
     behind_scanned_surface,
     on_scanned_surface,
     returns_xy,
@@ -632,7 +632,7 @@ class Explorer:
         edge = self.params.seen_past_fov_margin_rad
         past = np.flatnonzero(seen_past(scan, scan_pose, pts, depth, edge, nearest_m=0.3))  # not beside the sensor
         # The list may be a few keyframes old: ask whether each vertex is still open.
-        return any(self.map.keyframes[owners[i][0]].kinds[owners[i][1]] == VertexKind.FRONTIER for i in past)
+        return any(self.map.keyframes[owners[i][0]].kinds[owners[i][1]] == KIND_FRONTIER for i in past)
 
     def _open_side_and_shadow(self) -> tuple[FloatArray, list[tuple[int, int]]]:
         """The current view's open frontier vertices not at the range limit, in its frame, with

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.core.fov_polygon import VertexKind
+from companion.core.fov_polygon import KIND_FREE, KIND_FRONTIER, KIND_OBSTACLE
 from companion.core.geometry import FloatArray, Pose2
 from companion.core.local_map import Keyframe, LocalMap
 
@@ -53,7 +53,7 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     """For each open frontier vertex, the length of frontier its run of consecutive open frontier
     vertices spans (0 for other vertices). Tiny runs are fragments not worth a flight."""
     n = kinds.size
-    is_open = kinds == VertexKind.FRONTIER
+    is_open = kinds == KIND_FRONTIER
     sizes = np.zeros(n)
     if not is_open.any():
         return sizes
@@ -77,7 +77,7 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
     # three flights to such vertices found nothing. Beside a wall (a gap seen through, or a vertex
     # closed as the wall it lies on) it spans half of each edge.
     kinds_o = kinds[r.order]
-    seen_both = r.first & r.last & (np.roll(kinds_o, 1) == VertexKind.FREE) & (np.roll(kinds_o, -1) == VertexKind.FREE)
+    seen_both = r.first & r.last & (np.roll(kinds_o, 1) == KIND_FREE) & (np.roll(kinds_o, -1) == KIND_FREE)
     into[r.run[seen_both]] = 0.0
     out[r.run[seen_both]] = 0.0
     total = 0.5 * (into + out) + inside
@@ -88,7 +88,7 @@ def run_sizes_m(kinds: NDArray[np.int8], vertices_xy: FloatArray) -> FloatArray:
 def run_brackets(kinds: NDArray[np.int8]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """For each open frontier vertex, the vertex just before its run and the one just after it
     (-1 for other vertices, and when every vertex is open)."""
-    is_open = kinds == VertexKind.FRONTIER
+    is_open = kinds == KIND_FRONTIER
     before = np.full(kinds.size, -1, dtype=np.intp)
     after = np.full(kinds.size, -1, dtype=np.intp)
     if not is_open.any() or is_open.all():
@@ -108,7 +108,7 @@ def walled_runs(kinds: NDArray[np.int8]) -> NDArray[np.bool_]:
     between walls: a door, or a corridor seen end-on), not beside space other views saw."""
     before, after = run_brackets(kinds)
     bracketed = (before >= 0) & (after >= 0)
-    walled = bracketed & (kinds[before] == VertexKind.OBSTACLE) & (kinds[after] == VertexKind.OBSTACLE)
+    walled = bracketed & (kinds[before] == KIND_OBSTACLE) & (kinds[after] == KIND_OBSTACLE)
     return np.asarray(walled, dtype=bool)
 
 
@@ -121,7 +121,7 @@ def targetable_indices(kf: Keyframe, min_size_m: float) -> NDArray[np.intp]:
     idx = memo[1].get(min_size_m)
     if idx is None:
         sizes = run_sizes_m(kf.kinds, kf.polygon.vertices_xy)
-        idx = np.flatnonzero((kf.kinds == VertexKind.FRONTIER) & (sizes >= min_size_m))
+        idx = np.flatnonzero((kf.kinds == KIND_FRONTIER) & (sizes >= min_size_m))
         idx.flags.writeable = False  # shared by every caller until the next change
         memo[1][min_size_m] = idx
     return idx

@@ -20,7 +20,7 @@ import shapely
 from numpy.typing import NDArray
 
 from companion.core.errors import GraphError
-from companion.core.fov_polygon import FovPolygon, VertexKind
+from companion.core.fov_polygon import KIND_FRONTIER, KIND_OBSTACLE, FovPolygon, VertexKind
 from companion.core.geometry import FloatArray, Pose2, apply_each, apply_grouped, move_each, point_segment_distances
 from companion.core.pose_graph import EdgeType, PoseGraph
 from companion.core.slivers import SliverParams, sliver_vertices
@@ -146,7 +146,7 @@ class Keyframe:
         """The open frontier vertices (read-only, memoised until the next :meth:`close`)."""
         memo = self.open_memo
         if memo is None or memo[0] != self.version:
-            idx = np.flatnonzero(self.kinds == VertexKind.FRONTIER)
+            idx = np.flatnonzero(self.kinds == KIND_FRONTIER)
             idx.flags.writeable = False
             memo = self.open_memo = (self.version, idx)
         return memo[1]
@@ -520,7 +520,7 @@ class LocalMap:
         kf = self.keyframes[keyframe_id]
         if self.params.slivers.reach_m <= 0.0 or indices.size == 0:
             return indices[:0]
-        indices = indices[kf.kinds[indices] == VertexKind.FRONTIER]
+        indices = indices[kf.kinds[indices] == KIND_FRONTIER]
         judged = self._sliver_judged.get(keyframe_id)
         view = self._judging_view(keyframe_id, frame_id, build=False)
         if judged is None or view is None or judged[0] is not view:
@@ -543,7 +543,7 @@ class LocalMap:
             judged = self._sliver_judged[keyframe_id] = (view, set())
         judged[1].update(indices.tolist())
         hit = np.zeros(indices.size, dtype=bool)
-        ask = kf.kinds[indices] == VertexKind.FRONTIER  # building the view may have closed some
+        ask = kf.kinds[indices] == KIND_FRONTIER  # building the view may have closed some
         if not ask.any():
             return hit
         idx = indices[ask]
@@ -591,10 +591,10 @@ class LocalMap:
         """Close frontier vertices: looked at, nothing beyond them to explore (``kind`` obstacle
         when a wall was seen right there)."""
         kf = self.keyframes[keyframe_id]
-        kf.close(indices[kf.kinds[indices] == VertexKind.FRONTIER], kind)
+        kf.close(indices[kf.kinds[indices] == KIND_FRONTIER], kind)
 
     def open_frontier_count(self) -> int:
-        return int(sum(np.count_nonzero(kf.kinds == VertexKind.FRONTIER) for kf in self.keyframes.values()))
+        return int(sum(np.count_nonzero(kf.kinds == KIND_FRONTIER) for kf in self.keyframes.values()))
 
     def pose_in(self, frame_id: int, keyframe_id: int) -> Pose2:
         """Pose of a keyframe in another's frame: the cached neighbourhood or the graph path."""
@@ -845,7 +845,7 @@ def _loose_limit(kf: Keyframe, indices: NDArray[np.intp]) -> NDArray[np.bool_]:
     their own polygon (out in an arc, as in a doorway; not where a wall left the range)."""
     kinds = kf.polygon.kinds
     n = kinds.size
-    beside = (kinds[(indices - 1) % n] == VertexKind.OBSTACLE) | (kinds[(indices + 1) % n] == VertexKind.OBSTACLE)
+    beside = (kinds[(indices - 1) % n] == KIND_OBSTACLE) | (kinds[(indices + 1) % n] == KIND_OBSTACLE)
     return np.asarray(kf.polygon.at_range_limit[indices] & ~beside, dtype=bool)
 
 

@@ -30,7 +30,7 @@ import shapely
 from numpy.typing import NDArray
 
 from companion.core.errors import GraphError
-from companion.core.fov_polygon import VertexKind
+from companion.core.fov_polygon import KIND_FRONTIER, VertexKind
 from companion.core.free_space_grid import FreeSpaceGrid, GridParams, Reach
 from companion.core.frontiers import FrontierKey, run_brackets, targetable_indices, walled_runs
 from companion.core.geometry import FloatArray, Pose2, apply_grouped, point_segment_distances, wrap_angle, wrap_angles
@@ -644,7 +644,7 @@ class FrontierPlanner:
         xy = kf.polygon.vertices_xy
         near = np.hypot(*(xy - xy[key.index]).T) <= self.params.stale_radius_m
         near[key.index] = True
-        idx = np.flatnonzero(near & (kf.kinds == VertexKind.FRONTIER))
+        idx = np.flatnonzero(near & (kf.kinds == KIND_FRONTIER))
         if idx.size:
             seen = local_map.close_seen_from(frame_id, key.keyframe_id, idx)
             stale = idx[~seen]
@@ -656,7 +656,7 @@ class FrontierPlanner:
         return [
             k
             for k in sorted(self.set_aside, key=lambda k: (k.keyframe_id, k.index))
-            if local_map.keyframes[k.keyframe_id].kinds[k.index] == VertexKind.FRONTIER
+            if local_map.keyframes[k.keyframe_id].kinds[k.index] == KIND_FRONTIER
         ]
 
     def _failed(self, key: FrontierKey, stamp_s: float, at_origin: bool = False) -> None:
@@ -903,7 +903,7 @@ class FrontierPlanner:
         sliver."""
         self._check_through_graph(local_map, key.keyframe_id)
         self._judge_slivers(local_map, key.keyframe_id, np.array([key.index], dtype=np.intp))
-        return bool(local_map.keyframes[key.keyframe_id].kinds[key.index] == VertexKind.FRONTIER)
+        return bool(local_map.keyframes[key.keyframe_id].kinds[key.index] == KIND_FRONTIER)
 
     def _judge_slivers(self, local_map: LocalMap, keyframe_id: int, indices: NDArray[np.intp]) -> None:
         """Close those of these frontiers whose unseen space is only a sliver (slivers.py, in this

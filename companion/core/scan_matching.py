@@ -17,7 +17,7 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from companion.core.fov_polygon import FovPolygon, VertexKind
+from companion.core.fov_polygon import KIND_OBSTACLE, FovPolygon
 from companion.core.geometry import FloatArray, Pose2, closest_on_segments, wrap_angle
 
 
@@ -133,7 +133,7 @@ def view_points(polygon: FovPolygon, walls: FloatArray, spacing_m: float) -> Flo
     """A view's walls (``walls``, its obstacle edges (M, 2, 2)) as points about ``spacing_m``
     apart, from each wall's first end, and its obstacle vertices, in its frame: a match then
     weighs walls by length, not by how many vertices the view's simplification left on them."""
-    corners = np.asarray(polygon.vertices_xy[polygon.kinds == VertexKind.OBSTACLE], dtype=np.float64).reshape(-1, 2)
+    corners = np.asarray(polygon.vertices_xy[polygon.kinds == KIND_OBSTACLE], dtype=np.float64).reshape(-1, 2)
     if walls.shape[0] == 0:
         return corners
     a, b = walls[:, 0, :], walls[:, 1, :]
