@@ -263,8 +263,8 @@ def tuning_for(
             params,
             obstacle_memory_align=replace(
                 drift,
-                drift_xy_m_per_sqrt_m=drift.drift_xy_m_per_sqrt_m * scale,
-                drift_yaw_rad_per_sqrt_m=drift.drift_yaw_rad_per_sqrt_m * scale,
+                drift_xy_m_per_sqrt_m=drift_sigma_m_per_sqrt_m,
+                drift_yaw_rad_per_sqrt_m=drift.drift_yaw_rad_per_sqrt_m * scale,  # the heading's share kept
             ),
         )
     if not back_end:

@@ -1285,7 +1285,7 @@ class FrontierPlanner:
         least the fragment size), not set aside (unless ``aside_too``); only those at the
         sensor's range limit if asked."""
         kf = local_map.keyframes[keyframe_id]
-        idx = targetable_indices(kf, max(size_m, self.params.fragment_size_m))
+        idx = self._targetable(local_map, keyframe_id, size_m)
         if range_limit_only:
             idx = idx[kf.polygon.at_range_limit[idx] & walled_runs(kf.kinds)[idx]]
             if idx.size:
@@ -1335,12 +1335,16 @@ class FrontierPlanner:
         self, local_map: LocalMap, keyframe_id: int, size_m: float, range_limit_only: bool = False
     ) -> bool:
         if not range_limit_only:  # the common question, asked of every keyframe a route search passes
-            idx = targetable_indices(local_map.keyframes[keyframe_id], max(size_m, self.params.fragment_size_m))
-            if idx.size == 0:
+            if self._targetable(local_map, keyframe_id, size_m).size == 0:
                 return False
             if not self.set_aside:
                 return True
         return bool(self._targets(local_map, keyframe_id, size_m, range_limit_only=range_limit_only))
+
+    def _targetable(self, local_map: LocalMap, keyframe_id: int, size_m: float) -> NDArray[np.intp]:
+        """A keyframe's open frontier vertices whose runs are at least ``size_m`` long and at
+        least the fragment size (set-aside ones included; memoised, see targetable_indices)."""
+        return targetable_indices(local_map.keyframes[keyframe_id], max(size_m, self.params.fragment_size_m))
 
     def _has_live_targets(
         self, local_map: LocalMap, keyframe_id: int, size_m: float, range_limit_only: bool = False
