@@ -11,10 +11,12 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
+from pydantic import ValidationError
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from companion.app import LoopClosureSource, tuning_for
+from companion.config import ExplorationConfig
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
@@ -33,6 +35,20 @@ def _positive(kind: type[float] | type[int]):  # type: ignore[no-untyped-def]
             raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
         if value < 0:
             raise argparse.ArgumentTypeError(f"must not be negative, got {text}")
+        return value
+
+    return parse
+
+
+def _exploration_value(field: str):  # type: ignore[no-untyped-def]
+    """A number the config's ``exploration.<field>`` would take (its bounds, one place for both)."""
+
+    def parse(text: str) -> float:
+        value = float(_positive(float)(text))
+        try:
+            ExplorationConfig.model_validate({field: value})
+        except ValidationError as exc:
+            raise argparse.ArgumentTypeError(f"{exc.errors()[0]['msg'].lower()}, got {text}") from None
         return value
 
     return parse
@@ -81,7 +97,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     sim.add_argument(
         "--odometry-drift-per-keyframe",
-        type=_positive(float),
+        type=_exploration_value("odometry_drift_m_per_keyframe"),
         default=0.05,
         metavar="M",
         help="the map's drift margin per keyframe along the pose graph, as "
@@ -89,7 +105,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     sim.add_argument(
         "--odometry-drift-sigma",
-        type=_positive(float),
+        type=_exploration_value("odometry_drift_sigma_m_per_sqrt_m"),
         default=0.1,
         metavar="M",
         help="how far the companion takes the odometry to drift, one sigma per axis after a metre, as "

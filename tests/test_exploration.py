@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from companion.app import explorer_params, map_params, planner_params, tuning_for
-from companion.cli import main
-from companion.config import Config
+from companion.cli import _parser, main
+from companion.config import Config, ExplorationConfig
 from companion.core.explorer import Explorer, ExplorerParams
 from companion.core.fov_polygon import PolygonParams, VertexKind
 from companion.core.geometry import Pose2, wrap_angle
@@ -521,6 +521,31 @@ def test_cli_reports_a_bad_map_without_a_traceback(tmp_path, capsys):
     assert main(["sim", "--map", str(bad), "--quiet"]) == 2
     captured = capsys.readouterr()
     assert "bad.geojson" in captured.out + captured.err
+
+
+@pytest.mark.parametrize(
+    ("option", "field"),
+    [
+        ("--odometry-drift-per-keyframe", "odometry_drift_m_per_keyframe"),
+        ("--odometry-drift-sigma", "odometry_drift_sigma_m_per_sqrt_m"),
+    ],
+)
+def test_cli_drift_options_take_what_the_config_takes(small_room, option, field, capsys):
+    """The CLI's drift options and the config's fields have one set of bounds: a value the config
+    refuses (over its upper bound, negative, not a number) is refused on the command line with a
+    usage error naming the option, before any flight; the bound itself and 0 are taken by both."""
+    bound = next(m.le for m in ExplorationConfig.model_fields[field].metadata if hasattr(m, "le"))
+    for bad in (str(bound * 1.5), "-0.01", "nan", "abc"):
+        with pytest.raises(ValueError):
+            ExplorationConfig.model_validate({field: bad})
+        with pytest.raises(SystemExit) as exit_info:
+            main(["sim", "--map", str(small_room), "--quiet", option, bad])
+        assert exit_info.value.code == 2
+        assert option in capsys.readouterr().err
+    for good in (0.0, bound):
+        assert getattr(ExplorationConfig.model_validate({field: good}), field) == good
+        args = _parser().parse_args(["sim", "--map", str(small_room), option, str(good)])
+        assert getattr(args, option[2:].replace("-", "_")) == good
 
 
 def _wall_ahead_scan(t: float, distance_m: float) -> DepthScan:
