@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,11 @@ from shapely.geometry import shape as geojson_shape
 
 from companion.core.geometry import FloatArray, Pose2, point_segment_distances
 from sitl.errors import MapError
+
+# The simulator's largest map, per side: its ground-truth coverage grid has 0.2 m cells and the
+# grid baseline's 0.1 m cells, so memory grows with the area (a 100 km square asked for 1.8 TiB).
+# A building, even a campus (60 x 40 m), is well within it.
+MAX_SIDE_M = 200.0
 
 
 @dataclass(frozen=True)
@@ -48,7 +54,9 @@ def _ring_segments(ring: Any) -> FloatArray:
 
 def _polygon(feature: dict[str, Any], path: Path, what: str) -> shapely.Polygon:
     try:
-        geom = geojson_shape(feature["geometry"])
+        with warnings.catch_warnings():  # a NaN coordinate warns first; is_valid_reason names it below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            geom = geojson_shape(feature["geometry"])
     except Exception as exc:  # shapely raises several types for bad GeoJSON
         raise MapError(f"{path}: {what} has an unreadable geometry ({exc})") from None
     if not isinstance(geom, shapely.Polygon):
@@ -92,6 +100,12 @@ def load_world(path: str | Path) -> World:
         raise MapError(f"{p}: needs exactly one boundary, found {len(boundaries)}")
     if len(starts) != 1:
         raise MapError(f"{p}: needs exactly one start, found {len(starts)}")
+    minx, miny, maxx, maxy = boundaries[0].bounds
+    if max(maxx - minx, maxy - miny) > MAX_SIDE_M:
+        raise MapError(
+            f"{p}: the boundary spans {maxx - minx:g} x {maxy - miny:g} m; the simulator takes maps up to "
+            f"{MAX_SIDE_M:g} m a side (its coverage grids grow with the area)"
+        )
     i, sf = starts[0]
     try:
         pt = geojson_shape(sf["geometry"])

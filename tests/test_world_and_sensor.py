@@ -1,5 +1,6 @@
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -7,7 +8,7 @@ import pytest
 from companion.core.geometry import Pose2
 from sitl.depth_sensor import DepthSensor, SensorParams, cast_rays
 from sitl.errors import MapError
-from sitl.world import load_world
+from sitl.world import MAX_SIDE_M, load_world
 from tests.conftest import square, write_map
 
 
@@ -60,6 +61,31 @@ def test_start_inside_an_obstacle_is_refused(tmp_path):
     p = write_map(tmp_path / "m.geojson", square(0, 0, 10, 10), [square(4, 4, 6, 6)], (5.0, 5.0))
     with pytest.raises(MapError, match="not in free space"):
         load_world(p)
+
+
+def test_a_map_wider_than_the_simulator_takes_is_refused_before_any_grid_is_built(tmp_path):
+    """The coverage grids grow with the area: a 100 km square asked for 1.8 TiB and died with a
+    MemoryError traceback. Over ``MAX_SIDE_M`` a side the map is refused, naming its size; at
+    the limit it loads (one side at the limit is enough to refuse: a long thin map too)."""
+    ok = write_map(tmp_path / "ok.geojson", square(0, 0, MAX_SIDE_M, 10), [], (5.0, 5.0))
+    assert load_world(ok).bounds == (0.0, 0.0, MAX_SIDE_M, 10.0)
+    wide = write_map(tmp_path / "wide.geojson", square(0, 0, 10, MAX_SIDE_M + 1), [], (5.0, 5.0))
+    with pytest.raises(MapError, match=f"10 x {MAX_SIDE_M + 1:g} m") as err:
+        load_world(wide)
+    assert "wide.geojson" in str(err.value)
+
+
+def test_a_nan_coordinate_is_a_map_error_without_a_warning(tmp_path):
+    """shapely warns on a NaN coordinate before the map's own check names it: the user sees the
+    one clear error, not a RuntimeWarning from inside shapely first."""
+    p = write_map(tmp_path / "nan.geojson", square(0, 0, 10, 10), [], (5.0, 5.0))
+    data = json.loads(p.read_text())
+    data["features"][0]["geometry"]["coordinates"][0][2][1] = math.nan  # Python's json writes NaN
+    p.write_text(json.dumps(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(MapError, match="not a valid polygon"):
+            load_world(p)
 
 
 def test_boundary_that_is_not_a_polygon_is_refused(tmp_path):
