@@ -22,6 +22,7 @@ import shapely
 from shapely.geometry import mapping
 
 from sitl.errors import MapError
+from sitl.world import MAX_SIDE_M
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +60,8 @@ def generate_map(seed: int, params: MapGenParams | None = None) -> dict[str, Any
         raise MapError("map generator: width and height must be finite")
     if p.width_m < p.min_room_m or p.height_m < p.min_room_m:
         raise MapError(f"map generator: the building must be at least {p.min_room_m:g} m each way (one room)")
+    if max(p.width_m, p.height_m) > MAX_SIDE_M:
+        raise MapError(f"map generator: the building must be at most {MAX_SIDE_M:g} m each way (the simulator's limit)")
     if not (0.0 < p.door_min_m <= p.door_max_m):
         raise MapError(f"map generator: doors must be 0 < min <= max wide, got {p.door_min_m:g}-{p.door_max_m:g} m")
     if p.furniture_max_per_room < 0:

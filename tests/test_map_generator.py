@@ -9,7 +9,7 @@ from sitl.cli import main as sitl_main
 from sitl.errors import MapError
 from sitl.map_generator import MapGenParams, generate_map, write_generated_map
 from sitl.runner import run_exploration
-from sitl.world import load_world
+from sitl.world import MAX_SIDE_M, load_world
 
 BERTH_M = MapGenParams().berth_m
 
@@ -50,6 +50,15 @@ def test_maps_have_rooms_doors_and_furniture_across_seeds():
 def test_a_building_too_small_for_a_room_is_a_clear_error():
     with pytest.raises(MapError, match="at least"):
         generate_map(1, MapGenParams(width_m=2.0))
+
+
+def test_a_building_wider_than_the_simulator_takes_is_a_clear_error(tmp_path, capsys):
+    """``sitl mapgen`` must not write a map ``load_world`` then refuses (over ``MAX_SIDE_M``)."""
+    with pytest.raises(MapError, match="at most"):
+        generate_map(1, MapGenParams(height_m=MAX_SIDE_M + 1.0))
+    out = tmp_path / "wide.geojson"
+    assert sitl_main(["mapgen", "--width", str(MAX_SIDE_M + 1.0), "--out", str(out)]) == 2
+    assert not out.exists() and "at most" in capsys.readouterr().err
 
 
 def test_sitl_mapgen_writes_a_map_the_simulator_loads(tmp_path, capsys):
