@@ -10,13 +10,38 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from companion.errors import ConfigError
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# pymavlink's connection kinds that take HOST:PORT, and whether port 0 is allowed (listening
+# on any free port); uds:, unix:, ws:, wss:, wsserver: and mcast: are passed on unchecked.
+_HOST_PORT_SCHEMES = {"udpin": True, "udp": True, "tcpin": True, "udpout": False, "udpbcast": False, "tcp": False}
+
+
+def check_mavlink_url(url: str) -> str:
+    """A pymavlink connection string (``udpin:HOST:PORT``, ``tcp:HOST:PORT``, ... or a serial
+    device), checked before any socket opens: a bad port raised an OverflowError traceback, and a
+    MAVSDK-style ``udp://:14540`` was taken for a serial device and retried for 30 s."""
+    if "://" in url:
+        raise ValueError(
+            f"{url!r} is a MAVSDK-style URL; pymavlink's are udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT "
+            "or a serial device (MAVSDK's udp://:14540 is udpin:0.0.0.0:14540)"
+        )
+    scheme, sep, rest = url.partition(":")
+    if sep and scheme in _HOST_PORT_SCHEMES:
+        host, sep, port = rest.rpartition(":")
+        lowest = 0 if _HOST_PORT_SCHEMES[scheme] else 1
+        if not (sep and host and port.isdigit() and lowest <= int(port) <= 65535):
+            raise ValueError(f"{url!r}: expected {scheme}:HOST:PORT with a port {lowest}-65535")
+    elif not url.strip():
+        raise ValueError("must name a connection (udpin:HOST:PORT, tcp:HOST:PORT, ...) or a serial device")
+    return url
 
 
 class VehicleConfig(_Strict):
@@ -42,6 +67,11 @@ class VehicleConfig(_Strict):
     altitude_m: float = Field(1.5, gt=0.2, le=50.0)
     arm_timeout_s: float = Field(90.0, gt=0.0)
     command_timeout_s: float = Field(1.0, gt=0.0)
+
+    @field_validator("mavlink")
+    @classmethod
+    def _mavlink_url(cls, url: str) -> str:
+        return check_mavlink_url(url)
 
 
 class InputsConfig(_Strict):

@@ -11,9 +11,18 @@ import sys
 from pathlib import Path
 from types import FrameType
 
+from companion.config import check_mavlink_url
 from sitl.errors import SitlError
 from sitl.map_generator import MapGenParams
 from sitl.world import World, load_world
+
+
+def _mavlink_url(text: str) -> str:
+    """A pymavlink connection string, checked as the companion's config checks its own."""
+    try:
+        return check_mavlink_url(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -25,6 +34,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--mavlink",
         action="append",
+        type=_mavlink_url,
         metavar="URL",
         help="pymavlink connection, repeatable (default: px4 udpout:127.0.0.1:14540, "
         "ardupilot tcpin:127.0.0.1:5760, as their SITLs)",
@@ -52,7 +62,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--report", type=Path, help="write the ground-truth report (coverage, collisions) here on exit")
     sensor = sub.add_parser("sensor", help="only the depth sensor and SLAM, following an external autopilot")
     sensor.add_argument("--map", required=True, type=Path, help="GeoJSON map; the autopilot's origin is its start")
-    sensor.add_argument("--pose-from", required=True, metavar="URL", help="pymavlink URL of the autopilot")
+    sensor.add_argument(
+        "--pose-from", required=True, type=_mavlink_url, metavar="URL", help="pymavlink URL of the autopilot"
+    )
     sensor.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="Zenoh listen endpoint")
     sensor.add_argument("--zenoh-prefix", default="companion")
     sensor.add_argument("--vehicle-name", default="sitl")

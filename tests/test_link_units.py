@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.config import load_config
+from companion.config import check_mavlink_url, load_config
 from companion.core.errors import ScanError
 from companion.core.geometry import Pose2
 from companion.core.messages import DepthScan, Odometry, Setpoint
@@ -26,6 +26,7 @@ from companion.links.obstacle_distance import (
     encode_scan,
 )
 from companion.service import MissionState, Service, ServiceSettings
+from sitl.cli import main as sitl_main
 
 
 def test_ned_and_core_frames_are_inverse_and_right_handed() -> None:
@@ -114,6 +115,47 @@ def test_config_errors_name_the_file_and_the_problem(tmp_path: Path) -> None:
         load_config(missing)
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "absent.yaml")
+
+
+@pytest.mark.parametrize(
+    ("url", "needle"),
+    [
+        ("udp://:14540", "MAVSDK-style"),  # MAVSDK's form: pymavlink took it for a serial device
+        ("udpin:127.0.0.1:99999", "port 0-65535"),  # raised an OverflowError traceback at bind
+        ("udpin:127.0.0.1:abc", "port 0-65535"),
+        ("tcp:127.0.0.1:0", "port 1-65535"),  # nothing to connect to on port 0
+        ("tcp:localhost", "tcp:HOST:PORT"),
+        ("udpout::14550", "udpout:HOST:PORT"),
+        (" ", "must name a connection"),
+    ],
+)
+def test_a_bad_mavlink_url_is_a_config_error_before_any_socket_opens(tmp_path: Path, url: str, needle: str) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(f"vehicle:\n  mavlink: '{url}'\n")
+    with pytest.raises(ConfigError, match=needle) as err:
+        load_config(path)
+    assert "vehicle.mavlink" in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "url",
+    ["udpin:0.0.0.0:14540", "udpin:0.0.0.0:0", "udp:127.0.0.1:14550", "tcp:127.0.0.1:5760", "/dev/ttyAMA0", "COM3"],
+)
+def test_pymavlink_urls_and_serial_devices_are_taken(url: str) -> None:
+    assert check_mavlink_url(url) == url
+
+
+def test_sitl_refuses_a_bad_mavlink_url_on_its_command_line(capsys: pytest.CaptureFixture[str]) -> None:
+    """``sitl run --mavlink`` and ``sitl sensor --pose-from`` check URLs as the config does (an
+    out-of-range port died in an OverflowError traceback at bind)."""
+    for argv in (
+        ["run", "--map", "config/maps/room.geojson", "--mavlink", "udpin:127.0.0.1:99999"],
+        ["sensor", "--map", "config/maps/room.geojson", "--pose-from", "udp://:14540"],
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            sitl_main(argv)
+        assert exit_info.value.code == 2
+        assert argv[-2] in capsys.readouterr().err
 
 
 def test_every_shipped_config_loads_and_keeps_zenoh_on_loopback() -> None:

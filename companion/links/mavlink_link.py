@@ -120,9 +120,12 @@ class MavlinkLink:
                     autoreconnect=True,
                 )
                 break
-            except (OSError, ValueError) as err:
+            except (OSError, ValueError, OverflowError) as err:
                 if time.monotonic() >= end:
                     raise LinkError(f"cannot open MAVLink connection {s.url!r}: {err}") from None
+                if "open" not in self._warned:  # once, not every half second: say why it waits
+                    self._warned.add("open")
+                    log.warning("cannot open %s yet (%s): retrying for %.0f s", s.url, err, s.connect_timeout_s)
                 await asyncio.sleep(0.5)
         self._thread = threading.Thread(target=self._read, name="mavlink-reader", daemon=True)
         self._thread.start()
