@@ -10,9 +10,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from companion.errors import ConfigError
+from companion.links.zenoh_keys import Keys
 
 
 class _Strict(BaseModel):
@@ -130,6 +131,25 @@ class ExplorationConfig(_Strict):
     )
 
 
+_IP_LOCATORS = ("tcp", "udp", "tls", "quic", "ws")  # Zenoh protocols whose address is HOST:PORT
+
+
+def check_zenoh_endpoint(endpoint: str, listening: bool) -> str:
+    """A Zenoh locator, ``<protocol>/<address>``; for the IP protocols HOST:PORT with a port in
+    range (0, any free port, only to listen on). Zenoh opens a session with ``tcp/HOST:99999``
+    to connect to and then waits for a peer that can never answer."""
+    proto, sep, address = endpoint.partition("/")
+    address = address.split("?", 1)[0].split("#", 1)[0]
+    if not (sep and proto and address):
+        raise ValueError(f"{endpoint!r}: expected <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    if proto in _IP_LOCATORS:
+        host, sep, port = address.rpartition(":")
+        lowest = 0 if listening else 1
+        if not (sep and host and port.isdigit() and lowest <= int(port) <= 65535):
+            raise ValueError(f"{endpoint!r}: expected {proto}/HOST:PORT with a port {lowest}-65535")
+    return endpoint
+
+
 class ZenohConfig(_Strict):
     prefix: str = "companion"
     vehicle: str = "sitl"
@@ -138,6 +158,16 @@ class ZenohConfig(_Strict):
     mode: Literal["peer", "client", "router"] = "peer"
     multicast_scouting: bool = False
     overrides: dict[str, Any] = Field(default_factory=dict, description="other zenoh config paths, e.g. TLS")
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, endpoints: list[str], info: ValidationInfo) -> list[str]:
+        return [check_zenoh_endpoint(e, info.field_name == "listen") for e in endpoints]
+
+    @model_validator(mode="after")
+    def _key_chunks(self) -> ZenohConfig:
+        Keys(self.prefix, self.vehicle)  # a wildcard or empty chunk: a ValueError naming it
+        return self
 
 
 class Config(_Strict):

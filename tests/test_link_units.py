@@ -158,6 +158,31 @@ def test_sitl_refuses_a_bad_mavlink_url_on_its_command_line(capsys: pytest.Captu
         assert argv[-2] in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("zenoh", "needle"),
+    [
+        ("connect: ['tcp/127.0.0.1:99999']", "port 1-65535"),  # zenoh opened, then waited for ever
+        ("listen: ['127.0.0.1:7448']", "<protocol>/<address>"),
+        ("connect: ['tcp/localhost']", "tcp/HOST:PORT"),
+        ("prefix: 'fleet/**'", "key chunk '\\*\\*'"),  # a wildcard: no key to publish on
+        ("vehicle: 'drone 1'", "key chunk 'drone 1'"),
+    ],
+)
+def test_a_bad_zenoh_section_is_a_config_error_before_the_vehicle_is_waited_for(
+    tmp_path: Path, zenoh: str, needle: str
+) -> None:
+    path = tmp_path / "z.yaml"
+    path.write_text(f"vehicle:\n  mavlink: udpin:127.0.0.1:14540\ninputs:\n  scan: zenoh\nzenoh: {{{zenoh}}}\n")
+    with pytest.raises(ConfigError, match=needle) as err:
+        load_config(path)
+    assert "z.yaml: zenoh" in str(err.value)
+    listen_any = tmp_path / "ok.yaml"
+    listen_any.write_text(
+        "vehicle:\n  mavlink: udpin:127.0.0.1:14540\nzenoh: {listen: ['tcp/127.0.0.1:0'], prefix: a/b}\n"
+    )
+    assert load_config(listen_any).zenoh is not None
+
+
 def test_every_shipped_config_loads_and_keeps_zenoh_on_loopback() -> None:
     shipped = sorted(Path("config").glob("*.yaml"))
     assert len(shipped) >= 5  # sitl-px4, sitl-ardupilot, sitl-zenoh, firmware-px4, firmware-ardupilot
