@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from collections.abc import Callable
 from dataclasses import replace
@@ -16,6 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from companion.app import LoopClosureSource, tuning_for
+from companion.argtypes import noise_scale, number, seed
 from companion.config import ExplorationConfig
 from companion.errors import CompanionError
 from sitl.errors import SitlError
@@ -25,26 +25,11 @@ from sitl.slam import SlamParams
 from sitl.world import World, load_world
 
 
-def _positive(kind: type[float] | type[int]):  # type: ignore[no-untyped-def]
-    def parse(text: str) -> float | int:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-        if value < 0:
-            raise argparse.ArgumentTypeError(f"must not be negative, got {text}")
-        return value
-
-    return parse
-
-
 def _exploration_value(field: str):  # type: ignore[no-untyped-def]
     """A number the config's ``exploration.<field>`` would take (its bounds, one place for both)."""
 
     def parse(text: str) -> float:
-        value = float(_positive(float)(text))
+        value = float(number(float)(text))
         try:
             ExplorationConfig.model_validate({field: value})
         except ValidationError as exc:
@@ -60,22 +45,22 @@ def _parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="explore a map with the in-process simulated vehicle")
     sim.add_argument("--map", required=True, type=Path, help="GeoJSON map (see config/maps/README.md)")
     sim.add_argument("--planner", choices=PLANNERS, default="polygon")
-    sim.add_argument("--seed", type=int, default=1)
+    sim.add_argument("--seed", type=seed(), default=1)
     sim.add_argument(
         "--noise-scale",
-        type=_positive(float),
+        type=noise_scale(),
         default=1.0,
         help="odometry drift scale (0 = perfect)",
     )
     sim.add_argument(
         "--max-time",
-        type=_positive(float),
+        type=number(float),
         default=1800.0,
         help="simulated seconds before timing out",
     )
     sim.add_argument(
         "--input-latency",
-        type=_positive(float),
+        type=number(float),
         default=0.0,
         metavar="S",
         help="hand the planner each scan and odometry sample S seconds late, as a link does (default 0)",
@@ -136,7 +121,7 @@ def _parser() -> argparse.ArgumentParser:
         "sitl run --zenoh and the companion in config/sitl-zenoh.yaml)",
     )
     mon.add_argument("--echo", metavar="KEY", help="print the samples of KEY as they arrive")
-    mon.add_argument("--duration", type=_positive(float), help="stop after this many seconds")
+    mon.add_argument("--duration", type=number(float), help="stop after this many seconds")
     mon.add_argument("--once", action="store_true", help="print the table once (after up to 3 s) and exit")
     return parser
 

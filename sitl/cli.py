@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from types import FrameType
 
+from companion.argtypes import noise_scale, number, seed
 from companion.config import check_mavlink_url
 from sitl.errors import SitlError
 from sitl.map_generator import MapGenParams
@@ -39,13 +40,15 @@ def _parser() -> argparse.ArgumentParser:
         help="pymavlink connection, repeatable (default: px4 udpout:127.0.0.1:14540, "
         "ardupilot tcpin:127.0.0.1:5760, as their SITLs)",
     )
-    run.add_argument("--speedup", type=float, default=1.0, help="simulation time per wall time (default 1)")
-    run.add_argument("--seed", type=int, default=1)
-    run.add_argument("--noise-scale", type=float, default=1.0, help="odometry drift scale (0 = perfect)")
-    run.add_argument("--max-time", type=float, help="stop after this many simulated seconds")
+    run.add_argument(
+        "--speedup", type=number(float, above_low=True), default=1.0, help="simulation time per wall time (default 1)"
+    )
+    run.add_argument("--seed", type=seed(), default=1)
+    run.add_argument("--noise-scale", type=noise_scale(), default=1.0, help="odometry drift scale (0 = perfect)")
+    run.add_argument("--max-time", type=number(float), help="stop after this many simulated seconds")
     run.add_argument(
         "--ekf-delay",
-        type=float,
+        type=number(float),
         default=2.0,
         help="ArduPilot flavour: seconds after boot before arming is possible (real SITL: about 40)",
     )
@@ -68,9 +71,9 @@ def _parser() -> argparse.ArgumentParser:
     sensor.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="Zenoh listen endpoint")
     sensor.add_argument("--zenoh-prefix", default="companion")
     sensor.add_argument("--vehicle-name", default="sitl")
-    sensor.add_argument("--seed", type=int, default=1)
+    sensor.add_argument("--seed", type=seed(), default=1)
     gen = sub.add_parser("mapgen", help="write a random building map (rooms, doors, furniture) for exploration tests")
-    gen.add_argument("--seed", type=int, default=1, help="the same seed gives the same map")
+    gen.add_argument("--seed", type=seed(), default=1, help="the same seed gives the same map")
     gen.add_argument("--width", type=float, default=24.0, help="building width in metres (default 24)")
     gen.add_argument("--height", type=float, default=16.0, help="building height in metres (default 16)")
     d = MapGenParams()
@@ -142,9 +145,6 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
     if args.command == "mapgen":
         return _mapgen(args)
-    if args.command == "run" and args.speedup <= 0:
-        print("sitl: --speedup must be positive", file=sys.stderr)
-        return 2
     try:
         world = load_world(args.map)
     except SitlError as err:

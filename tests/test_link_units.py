@@ -183,6 +183,35 @@ def test_a_bad_zenoh_section_is_a_config_error_before_the_vehicle_is_waited_for(
     assert load_config(listen_any).zenoh is not None
 
 
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (["sim", "--seed", "-1"], "--seed"),  # numpy's seeding raised a ValueError traceback
+        (["sim", "--seed", "1.5"], "--seed"),
+        (["sim", "--noise-scale", "1e308"], "--noise-scale"),  # drifted to inf: shapely warnings, a dead run
+        (["sim", "--max-time", "nan"], "--max-time"),
+        (["sitl", "run", "--seed", "-1"], "--seed"),
+        (["sitl", "run", "--noise-scale", "-1"], "--noise-scale"),  # was flown
+        (["sitl", "run", "--noise-scale", "nan"], "--noise-scale"),  # was flown
+        (["sitl", "run", "--ekf-delay", "-1"], "--ekf-delay"),
+        (["sitl", "run", "--speedup", "0"], "--speedup"),
+        (["sitl", "sensor", "--pose-from", "udpin:127.0.0.1:14550", "--seed", "-3"], "--seed"),
+    ],
+)
+def test_bad_numbers_on_either_command_line_are_usage_errors(
+    argv: list[str], option: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Both command lines check their numbers as they parse them: a usage error naming the option
+    (exit 2) before any map is read or socket opened."""
+    from companion.cli import main as companion_main
+
+    run, args = (sitl_main, argv[1:]) if argv[0] == "sitl" else (companion_main, argv)
+    with pytest.raises(SystemExit) as exit_info:
+        run([*args[:1], "--map", "config/maps/room.geojson", *args[1:]])
+    assert exit_info.value.code == 2
+    assert f"argument {option}" in capsys.readouterr().err
+
+
 def test_every_shipped_config_loads_and_keeps_zenoh_on_loopback() -> None:
     shipped = sorted(Path("config").glob("*.yaml"))
     assert len(shipped) >= 5  # sitl-px4, sitl-ardupilot, sitl-zenoh, firmware-px4, firmware-ardupilot
