@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable
 from dataclasses import replace
@@ -168,8 +169,23 @@ def _explore(
         return explore(progress)
 
 
+def _outputs_writable(args: argparse.Namespace) -> None:
+    """Make the report's folder and the plots folder before the flight, so a path that cannot be
+    written fails at once, not after minutes of flying."""
+    for folder in [*([args.report.parent] if args.report else []), *([args.plots] if args.plots else [])]:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CompanionError(f"cannot create {folder}: {exc.strerror or exc}") from None
+        if not os.access(folder, os.W_OK):
+            raise CompanionError(f"cannot write into {folder}")
+    if args.report and args.report.is_dir():
+        raise CompanionError(f"--report {args.report} is a folder; give a file name")
+
+
 def _sim(args: argparse.Namespace, console: Console) -> int:
     world = load_world(args.map)
+    _outputs_writable(args)
     trace = _explore(world, args, args.planner, console, args.input_latency)  # the baseline: no latency
     r = trace.report
     console.print(
@@ -179,8 +195,10 @@ def _sim(args: argparse.Namespace, console: Console) -> int:
         f"step p50/p99 {r['step_ms']['p50']:.2f}/{r['step_ms']['p99']:.2f} ms"
     )
     if args.report:
-        args.report.parent.mkdir(parents=True, exist_ok=True)
-        args.report.write_text(json.dumps(r, indent=2) + "\n")
+        try:
+            args.report.write_text(json.dumps(r, indent=2) + "\n")
+        except OSError as exc:
+            raise CompanionError(f"cannot write {args.report}: {exc.strerror or exc}") from None
         console.print(f"report: {args.report}")
     if args.plots:
         from sitl.plots import write_plots  # matplotlib only when asked for
@@ -194,8 +212,11 @@ def _sim(args: argparse.Namespace, console: Console) -> int:
                 f"time {b['exploration_time_s']:.1f} s "
                 f"-> time ratio polygon/grid {r['exploration_time_s'] / max(b['exploration_time_s'], 1e-9):.2f}"
             )
-        for path in write_plots(world, trace, args.plots, baseline):
-            console.print(f"plot: {path}")
+        try:
+            for path in write_plots(world, trace, args.plots, baseline):
+                console.print(f"plot: {path}")
+        except OSError as exc:
+            raise CompanionError(f"cannot write the plots into {args.plots}: {exc.strerror or exc}") from None
     return 0 if r["termination"] in ("complete", "unreachable_frontiers_left") and r["collisions"] == 0 else 1
 
 

@@ -515,6 +515,23 @@ def test_cli_sim_with_scan_matching_finds_its_own_loop_closures_and_covers_the_l
     assert r["coverage"] >= 0.99 and r["collisions"] == 0
 
 
+def test_cli_refuses_outputs_it_cannot_write_before_flying(small_room, tmp_path, capsys):
+    """A report or plots path that cannot be written is an error at once (exit 2, no traceback),
+    not after the flight: ``--plots`` under a file died in a FileNotFoundError traceback after
+    the whole run, and ``--report`` naming a folder in an IsADirectoryError."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    for option, path, named in (
+        ("--plots", blocker / "plots", blocker / "plots"),
+        ("--report", blocker / "r.json", blocker),  # the folder it cannot make
+        ("--report", tmp_path, tmp_path),
+    ):
+        assert main(["sim", "--map", str(small_room), "--quiet", option, str(path)]) == 2
+        out = capsys.readouterr()
+        assert str(named) in "".join(out.err.split()) and "Traceback" not in out.err  # rich wraps long lines
+        assert "termination" not in out.out  # nothing was flown
+
+
 def test_cli_reports_a_bad_map_without_a_traceback(tmp_path, capsys):
     bad = tmp_path / "bad.geojson"
     bad.write_text("{")
