@@ -120,8 +120,11 @@ async def run_service(config: Config, report_path: Path | None) -> int:
         for closer in reversed(closers):
             await closer.close()
     if report_path is not None:
-        report_path.parent.mkdir(parents=True, exist_ok=True)
-        report_path.write_text(json.dumps(report, indent=2) + "\n")
+        try:  # checked before the flight (cli); a disk that filled since is logged, not a traceback
+            report_path.parent.mkdir(parents=True, exist_ok=True)
+            report_path.write_text(json.dumps(report, indent=2) + "\n")
+        except OSError as exc:
+            log.error("cannot write the report %s: %s", report_path, exc.strerror or exc)
     log.info("exploration ended: %s", report.get("termination"))
     return EXIT_OK if report.get("termination") in NORMAL_ENDINGS else EXIT_FAILED
 

@@ -170,9 +170,10 @@ def _explore(
 
 
 def _outputs_writable(args: argparse.Namespace) -> None:
-    """Make the report's folder and the plots folder before the flight, so a path that cannot be
-    written fails at once, not after minutes of flying."""
-    for folder in [*([args.report.parent] if args.report else []), *([args.plots] if args.plots else [])]:
+    """Make the report's folder (and the plots folder, for ``sim``) before the flight, so a path
+    that cannot be written fails at once, not after minutes of flying."""
+    plots = getattr(args, "plots", None)
+    for folder in [*([args.report.parent] if args.report else []), *([plots] if plots else [])]:
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -230,6 +231,7 @@ def _run(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
     config = load_config(args.config)
+    _outputs_writable(args)
     logging.basicConfig(
         level=args.log_level,
         format="%(name)s: %(message)s",

@@ -367,6 +367,15 @@ def test_commands_give_clear_errors_not_tracebacks(tmp_path: Path) -> None:
         assert run.returncode == 2, run.stderr
         assert "Traceback" not in run.stderr + run.stdout
         assert ("bad.yaml" in run.stderr + run.stdout) or ("missing.geojson" in run.stderr)
+    # A report path under a file: refused before the vehicle is waited for (the run ends in 2 s,
+    # not after the 30 s heartbeat wait).
+    good, blocker = tmp_path / "good.yaml", tmp_path / "a_file"
+    good.write_text("vehicle:\n  mavlink: udpin:127.0.0.1:1\n")
+    blocker.write_text("")
+    cmd = ["companion.cli", "run", "--config", str(good), "--report", str(blocker / "r.json")]
+    run = subprocess.run([sys.executable, "-m", *cmd], capture_output=True, text=True, timeout=20)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert str(blocker) in "".join((run.stderr + run.stdout).split())
 
 
 def test_service_stops_when_the_vehicle_leaves_its_control() -> None:
