@@ -17,7 +17,7 @@ from rich.progress import BarColumn, Progress, TextColumn
 
 from companion.app import LoopClosureSource, tuning_for
 from companion.argtypes import noise_scale, number, seed
-from companion.config import ExplorationConfig
+from companion.config import ExplorationConfig, check_zenoh_endpoint
 from companion.errors import CompanionError
 from sitl.errors import SitlError
 from sitl.runner import PLANNERS, RunTrace, run_exploration
@@ -38,6 +38,14 @@ def _exploration_value(field: str):  # type: ignore[no-untyped-def]
         return value
 
     return parse
+
+
+def _zenoh_endpoint(text: str) -> str:
+    """A Zenoh endpoint to connect to, checked as the config checks its own."""
+    try:
+        return check_zenoh_endpoint(text, listening=False)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -117,6 +125,7 @@ def _parser() -> argparse.ArgumentParser:
     mon.add_argument(
         "--connect",
         action="append",
+        type=_zenoh_endpoint,
         metavar="ENDPOINT",
         help="Zenoh endpoint, repeatable (default tcp/127.0.0.1:7447 and tcp/127.0.0.1:7448: "
         "sitl run --zenoh and the companion in config/sitl-zenoh.yaml)",

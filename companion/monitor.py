@@ -14,7 +14,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from companion.links.zenoh_link import ZenohSettings, open_session
+from companion.links.zenoh_link import ZenohSettings, check_key_expr, open_session
 
 
 @dataclass
@@ -95,6 +95,7 @@ def run_monitor(
     console: Console,
 ) -> int:
     """Watch the bus; 0 when something was seen, 1 when nothing was reachable or published."""
+    check_key_expr(echo or keyexpr)
     settings = ZenohSettings(mode="peer", connect=tuple(connect))
     monitor = Monitor()
     session = open_session(settings)

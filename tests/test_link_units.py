@@ -212,6 +212,22 @@ def test_bad_numbers_on_either_command_line_are_usage_errors(
     assert f"argument {option}" in capsys.readouterr().err
 
 
+def test_monitor_refuses_a_bad_key_expression_or_endpoint_before_opening_zenoh(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``companion monitor a//b`` (or ``--echo`` one) died in a zenoh.ZError traceback; now an
+    error naming the rule (exit 2); a bad ``--connect`` is a usage error."""
+    from companion.cli import main as companion_main
+
+    for argv in (["monitor", "a//b", "--once"], ["monitor", "--echo", "x?y", "--once"]):
+        assert companion_main([*argv, "--connect", "tcp/127.0.0.1:1"]) == 2
+        err = " ".join(capsys.readouterr().err.split())
+        assert "not a key expression" in err and "Traceback" not in err
+    with pytest.raises(SystemExit) as exit_info:
+        companion_main(["monitor", "--connect", "bogus", "--once"])
+    assert exit_info.value.code == 2 and "argument --connect" in capsys.readouterr().err
+
+
 def test_every_shipped_config_loads_and_keeps_zenoh_on_loopback() -> None:
     shipped = sorted(Path("config").glob("*.yaml"))
     assert len(shipped) >= 5  # sitl-px4, sitl-ardupilot, sitl-zenoh, firmware-px4, firmware-ardupilot

@@ -59,6 +59,17 @@ def session_config(settings: ZenohSettings) -> zenoh.Config:
     return conf
 
 
+def check_key_expr(text: str) -> str:
+    """A key expression Zenoh accepts (for subscribing: wildcards allowed), or a LinkError saying
+    why not, before any session opens."""
+    try:
+        zenoh.KeyExpr(text)
+    except Exception as err:  # zenoh raises its own ZError
+        reason = str(err).split(" at /", 1)[0]  # without the Rust source location
+        raise LinkError(f"not a key expression: {reason}") from None
+    return text
+
+
 def open_session(settings: ZenohSettings) -> zenoh.Session:
     try:
         return zenoh.open(session_config(settings))
