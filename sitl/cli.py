@@ -12,7 +12,8 @@ from pathlib import Path
 from types import FrameType
 
 from companion.argtypes import noise_scale, number, seed
-from companion.config import check_mavlink_url
+from companion.config import check_mavlink_url, check_zenoh_endpoint
+from companion.links.zenoh_keys import Keys
 from sitl.errors import SitlError
 from sitl.map_generator import MapGenParams
 from sitl.world import World, load_world
@@ -22,6 +23,27 @@ def _mavlink_url(text: str) -> str:
     """A pymavlink connection string, checked as the companion's config checks its own."""
     try:
         return check_mavlink_url(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _listen_endpoint(text: str) -> str:
+    try:
+        return check_zenoh_endpoint(text, listening=True)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _key_prefix(text: str) -> str:
+    try:
+        return Keys(text).prefix
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _vehicle_name(text: str) -> str:
+    try:
+        return Keys(vehicle=text).vehicle
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
 
@@ -56,21 +78,26 @@ def _parser() -> argparse.ArgumentParser:
         "--zenoh",
         nargs="?",
         const="tcp/127.0.0.1:7447",
+        type=_listen_endpoint,
         metavar="ENDPOINT",
         help="also publish scans, odometry and loop closures on Zenoh, listening on ENDPOINT "
         "(default tcp/127.0.0.1:7447; multicast scouting off)",
     )
-    run.add_argument("--zenoh-prefix", default="companion", help="key prefix (default companion)")
-    run.add_argument("--vehicle-name", default="sitl", help="vehicle name in the keys (default sitl)")
+    run.add_argument("--zenoh-prefix", type=_key_prefix, default="companion", help="key prefix (default companion)")
+    run.add_argument(
+        "--vehicle-name", type=_vehicle_name, default="sitl", help="vehicle name in the keys (default sitl)"
+    )
     run.add_argument("--report", type=Path, help="write the ground-truth report (coverage, collisions) here on exit")
     sensor = sub.add_parser("sensor", help="only the depth sensor and SLAM, following an external autopilot")
     sensor.add_argument("--map", required=True, type=Path, help="GeoJSON map; the autopilot's origin is its start")
     sensor.add_argument(
         "--pose-from", required=True, type=_mavlink_url, metavar="URL", help="pymavlink URL of the autopilot"
     )
-    sensor.add_argument("--zenoh", default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="Zenoh listen endpoint")
-    sensor.add_argument("--zenoh-prefix", default="companion")
-    sensor.add_argument("--vehicle-name", default="sitl")
+    sensor.add_argument(
+        "--zenoh", type=_listen_endpoint, default="tcp/127.0.0.1:7447", metavar="ENDPOINT", help="Zenoh listen endpoint"
+    )
+    sensor.add_argument("--zenoh-prefix", type=_key_prefix, default="companion")
+    sensor.add_argument("--vehicle-name", type=_vehicle_name, default="sitl")
     sensor.add_argument("--seed", type=seed(), default=1)
     gen = sub.add_parser("mapgen", help="write a random building map (rooms, doors, furniture) for exploration tests")
     gen.add_argument("--seed", type=seed(), default=1, help="the same seed gives the same map")

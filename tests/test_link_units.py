@@ -147,10 +147,15 @@ def test_pymavlink_urls_and_serial_devices_are_taken(url: str) -> None:
 
 def test_sitl_refuses_a_bad_mavlink_url_on_its_command_line(capsys: pytest.CaptureFixture[str]) -> None:
     """``sitl run --mavlink`` and ``sitl sensor --pose-from`` check URLs as the config does (an
-    out-of-range port died in an OverflowError traceback at bind)."""
+    out-of-range port died in an OverflowError traceback at bind), and Zenoh endpoints and key
+    chunks likewise."""
     for argv in (
         ["run", "--map", "config/maps/room.geojson", "--mavlink", "udpin:127.0.0.1:99999"],
         ["sensor", "--map", "config/maps/room.geojson", "--pose-from", "udp://:14540"],
+        # and the Zenoh side (a ValueError traceback, or zenoh's Json5Err after the map loaded)
+        ["run", "--map", "config/maps/room.geojson", "--vehicle-name", "drone 1"],
+        ["sensor", "--map", "config/maps/room.geojson", "--pose-from", "udpin:127.0.0.1:1", "--zenoh-prefix", "a//b"],
+        ["sensor", "--map", "config/maps/room.geojson", "--pose-from", "udpin:127.0.0.1:1", "--zenoh", "bogus"],
     ):
         with pytest.raises(SystemExit) as exit_info:
             sitl_main(argv)
