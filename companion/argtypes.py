@@ -33,6 +33,19 @@ def number(
     return parse
 
 
+def checked(check: Callable[[str], object]) -> Callable[[str], str]:
+    """The text, if ``check`` (a config-side validator) takes it; its ValueError as a usage error."""
+
+    def parse(text: str) -> str:
+        try:
+            check(text)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+        return text
+
+    return parse
+
+
 def seed() -> Callable[[str], float]:
     """A random seed: numpy takes any non-negative integer."""
     return number(int)

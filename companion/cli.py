@@ -9,6 +9,7 @@ import os
 import sys
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -16,7 +17,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from companion.app import LoopClosureSource, tuning_for
-from companion.argtypes import noise_scale, number, seed
+from companion.argtypes import checked, noise_scale, number, seed
 from companion.config import ExplorationConfig, check_zenoh_endpoint
 from companion.errors import CompanionError
 from sitl.errors import SitlError
@@ -38,14 +39,6 @@ def _exploration_value(field: str):  # type: ignore[no-untyped-def]
         return value
 
     return parse
-
-
-def _zenoh_endpoint(text: str) -> str:
-    """A Zenoh endpoint to connect to, checked as the config checks its own."""
-    try:
-        return check_zenoh_endpoint(text, listening=False)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -125,7 +118,7 @@ def _parser() -> argparse.ArgumentParser:
     mon.add_argument(
         "--connect",
         action="append",
-        type=_zenoh_endpoint,
+        type=checked(partial(check_zenoh_endpoint, listening=False)),
         metavar="ENDPOINT",
         help="Zenoh endpoint, repeatable (default tcp/127.0.0.1:7447 and tcp/127.0.0.1:7448: "
         "sitl run --zenoh and the companion in config/sitl-zenoh.yaml)",

@@ -8,44 +8,22 @@ import json
 import logging
 import signal
 import sys
+from functools import partial
 from pathlib import Path
 from types import FrameType
 
-from companion.argtypes import noise_scale, number, seed
+from companion.argtypes import checked, noise_scale, number, seed
 from companion.config import check_mavlink_url, check_zenoh_endpoint
 from companion.links.zenoh_keys import Keys
 from sitl.errors import SitlError
 from sitl.map_generator import MapGenParams
 from sitl.world import World, load_world
 
-
-def _mavlink_url(text: str) -> str:
-    """A pymavlink connection string, checked as the companion's config checks its own."""
-    try:
-        return check_mavlink_url(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-
-
-def _listen_endpoint(text: str) -> str:
-    try:
-        return check_zenoh_endpoint(text, listening=True)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-
-
-def _key_prefix(text: str) -> str:
-    try:
-        return Keys(text).prefix
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-
-
-def _vehicle_name(text: str) -> str:
-    try:
-        return Keys(vehicle=text).vehicle
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
+# URLs, endpoints and key chunks as the companion's config checks its own.
+_mavlink_url = checked(check_mavlink_url)
+_listen_endpoint = checked(partial(check_zenoh_endpoint, listening=True))
+_key_prefix = checked(Keys)
+_vehicle_name = checked(partial(Keys, "companion"))
 
 
 def _parser() -> argparse.ArgumentParser:
