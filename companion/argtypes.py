@@ -1,5 +1,6 @@
-"""Argument types for the command lines (``companion`` and ``sitl``): a number is checked where it
-is typed, so a bad one is a usage error naming the option, never a traceback deep in a run."""
+"""Argument types for the command lines (``companion`` and ``sitl``): a number, URL or name is
+checked where it is typed, so a bad one is a usage error naming the option, never a traceback
+deep in a run (or a flight with it)."""
 
 from __future__ import annotations
 
