@@ -16,29 +16,47 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from companion.argtypes import number
 from sitl.map_generator import write_generated_map
 from sitl.runner import run_exploration
 from sitl.world import load_world
 
 
+def _write(out: Path, runs: list[dict[str, Any]]) -> None:
+    """The results so far, replacing the file whole (never a half-written JSON)."""
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(runs, indent=2) + "\n")
+    tmp.replace(out)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("out/bench/results.json"))
-    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--seeds", type=number(int, 1), default=5)
     parser.add_argument("--maps", nargs="*", default=None, help="map names in config/maps (default: all)")
-    parser.add_argument("--max-time", type=float, default=3600.0)
-    parser.add_argument("--generated", type=int, default=0, help="also this many generated maps (map seeds 1..N)")
+    parser.add_argument("--max-time", type=number(float, above_low=True), default=3600.0)
+    parser.add_argument(
+        "--generated", type=number(int), default=0, help="also this many generated maps (map seeds 1..N)"
+    )
     args = parser.parse_args()
     console = Console()
     paths = sorted(Path("config/maps").glob("*.geojson"))
     if args.maps:
+        unknown = sorted(set(args.maps) - {p.stem for p in paths})
+        if unknown:
+            parser.error(f"no such map in config/maps: {', '.join(unknown)}")
         paths = [p for p in paths if p.stem in args.maps]
+    try:  # before hours of flights, not after them
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        parser.error(f"cannot create {args.out.parent}: {err.strerror or err}")
     if args.generated > 0:
         for k in range(1, args.generated + 1):
             path = args.out.parent / "maps" / f"gen{k}.geojson"
@@ -70,8 +88,7 @@ def main() -> int:
             t99p, t99g = row["polygon"]["time_to_99_s"], grid["time_to_99_s"]
             row["time_to_99_ratio"] = None if not (comparable and t99p and t99g) else round(t99p / t99g, 3)
             runs.append({"map": path.stem, "seed": seed, **row})
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(runs, indent=2) + "\n")
+            _write(args.out, runs)  # after every pair of runs: an interrupted bench keeps what it flew
     table = Table(title="polygon (drift) vs grid (perfect poses)")
     for col in (
         "map",

@@ -1,0 +1,66 @@
+"""``make bench``'s script: its arguments are checked before any flight, and it keeps what it flew."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = [sys.executable, "benchmarks/run.py"]
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--seeds", "0"], "--seeds"),  # flew nothing and wrote an empty results file over the last one
+        (["--maps", "nosuch"], "no such map in config/maps: nosuch"),  # likewise, silently
+        (["--max-time", "0"], "--max-time"),
+        (["--generated", "-2"], "--generated"),
+    ],
+)
+def test_bad_arguments_are_refused_before_any_flight_and_nothing_is_written(
+    tmp_path: Path, args: list[str], needle: str
+) -> None:
+    out = tmp_path / "r.json"
+    run = subprocess.run([*SCRIPT, *args, "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and needle in run.stderr and "Traceback" not in run.stderr
+    assert not out.exists()
+
+
+def test_the_results_are_written_as_the_runs_go(tmp_path: Path) -> None:
+    """A row per map and seed, with both planners' reports; the summary names the file."""
+    out = tmp_path / "bench" / "r.json"
+    cmd = [*SCRIPT, "--maps", "nook", "--seeds", "2", "--max-time", "3", "--out", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    rows = json.loads(out.read_text())
+    assert [(r["map"], r["seed"]) for r in rows] == [("nook", 1), ("nook", 2)]
+    assert all(r["polygon"]["exploration_time_s"] <= 3.0 + 0.2 and r["grid"]["planner"] == "grid" for r in rows)
+    assert not out.with_name("r.json.tmp").exists()
+    assert str(out) in "".join(run.stdout.split())
+
+
+def test_an_interrupted_bench_keeps_the_runs_it_flew(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Stopped during seed 2 (Ctrl-C, hours into ``make bench``), the file holds seed 1's row:
+    the results used to be written only at the very end."""
+    spec = importlib.util.spec_from_file_location("bench_run", "benchmarks/run.py")
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    real = bench.run_exploration
+
+    def run_until_seed_2(*args: object, **kwargs: object) -> object:
+        if kwargs["seed"] == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "run_exploration", run_until_seed_2)
+    out = tmp_path / "r.json"
+    monkeypatch.setattr(sys, "argv", ["run.py", "--maps", "nook", "--seeds", "3", "--max-time", "2", "--out", str(out)])
+    with pytest.raises(KeyboardInterrupt):
+        bench.main()
+    assert [(r["map"], r["seed"]) for r in json.loads(out.read_text())] == [("nook", 1)]
