@@ -298,7 +298,7 @@ def explorer_params(config: Config) -> ExplorerParams:
     lead = replace(
         params.lead, max_lead_m=config.vehicle.max_setpoint_lead_m, model_accel_mps2=config.vehicle.braking_accel_mps2
     )
-    params = replace(params, lead=lead)
+    params = replace(params, lead=lead, max_scan_range_m=exploration.max_scan_range_m)
     if config.exploration.match_odometry_edges is not None:
         params = replace(
             params, odometry_matching=replace(params.odometry_matching, enabled=config.exploration.match_odometry_edges)

@@ -120,6 +120,16 @@ class ExplorationConfig(_Strict):
             "vehicle slid into a corner it had seen 2 s before (docs/benchmarks.md, session 57)"
         ),
     )
+    max_scan_range_m: float = Field(
+        20.0,
+        gt=0.5,
+        le=100.0,
+        description=(
+            "scans are taken to this range at most (farther returns count as none: a frontier at this "
+            "range): a view's polygon, and a step's time, grow with the range (0.7 s a step at "
+            "OBSTACLE_DISTANCE's 655 m). Most depth cameras reach 5-10 m, 2D lidars 10-40 m"
+        ),
+    )
     match_odometry_edges: bool | None = Field(
         None,
         description=(

@@ -565,6 +565,27 @@ def test_cli_drift_options_take_what_the_config_takes(small_room, option, field,
         assert getattr(args, option[2:].replace("-", "_")) == good
 
 
+def test_a_sensor_claiming_kilometres_of_range_is_mapped_to_the_cap():
+    """A scan of max range 10 km with returns 5 km off made one step take 20 s (its polygon's arcs
+    kept their vertex spacing: tens of thousands of vertices). The explorer takes scans to
+    ``max_scan_range_m``: the keyframe's view reaches that far and no farther, its vertices as
+    many as a 20 m sensor's, and the config sets the cap."""
+    far = explorer()
+    far.step(Odometry(0.0, Pose2()), DepthScan(0.0, BEARINGS, np.full(64, 5000.0), 10000.0))
+    near = explorer()
+    near.step(Odometry(0.0, Pose2()), DepthScan(0.0, BEARINGS, np.full(64, np.inf), 20.0))
+    (kf,) = far.map.keyframes.values()
+    (ref,) = near.map.keyframes.values()
+    assert kf.radius_m == pytest.approx(20.0) and kf.polygon.vertices_xy.shape == ref.polygon.vertices_xy.shape
+    capped = explorer(max_scan_range_m=8.0)
+    capped.step(Odometry(0.0, Pose2()), DepthScan(0.0, BEARINGS, np.full(64, 5000.0), 10000.0))
+    assert next(iter(capped.map.keyframes.values())).radius_m == pytest.approx(8.0)
+    vehicle = {"mavlink": "udpin:127.0.0.1:14540"}
+    config = Config.model_validate({"vehicle": vehicle, "exploration": {"max_scan_range_m": 8.0}})
+    assert explorer_params(config).max_scan_range_m == 8.0
+    assert explorer_params(Config.model_validate({"vehicle": vehicle})).max_scan_range_m == 20.0
+
+
 def _wall_ahead_scan(t: float, distance_m: float) -> DepthScan:
     return DepthScan(t, BEARINGS, distance_m / np.cos(BEARINGS), 5.0)
 

@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.core.errors import ScanError
+from companion.core.explorer import Explorer
 from companion.core.fov_polygon import (
     PolygonParams,
     VertexKind,
@@ -17,7 +18,7 @@ from companion.core.fov_polygon import (
     seen_past,
 )
 from companion.core.geometry import Pose2
-from companion.core.messages import DepthScan
+from companion.core.messages import DepthScan, Odometry
 from sitl.depth_sensor import cast_rays
 
 BEARINGS = np.linspace(-math.pi / 4, math.pi / 4, 64)
@@ -369,3 +370,31 @@ def test_a_point_is_seen_past_only_where_its_ray_runs_on_that_far_inside_the_fie
     )
     got = seen_past(s, sensor, sensor.apply(body), 1.0, fov_margin_rad=0.1, nearest_m=0.3)
     assert got.tolist() == [True, False, True, False, False, False, False]
+
+
+def test_a_scan_capped_to_a_shorter_range_reads_farther_returns_as_none():
+    """``DepthScan.capped``: returns at or beyond the cap become no return (+inf) at the cap's
+    range, nearer ones, invalid (NaN) and too-near (-inf) readings stay; a scan already within the
+    cap is itself; one whose minimum range is past the cap sees nothing the map takes: refused."""
+    b = np.linspace(-0.5, 0.5, 6)
+    scan = DepthScan(1.0, b, np.array([3.0, 25.0, np.nan, -np.inf, 20.0, np.inf]), 655.0, 0.2)
+    capped = scan.capped(20.0)
+    assert capped.max_range_m == 20.0 and capped.min_range_m == 0.2 and capped.stamp_s == 1.0
+    np.testing.assert_array_equal(capped.ranges_m, [3.0, np.inf, np.nan, -np.inf, np.inf, np.inf])
+    assert scan.capped(1000.0) is scan
+    polygon = scan_to_polygon(capped)
+    assert float(np.max(np.hypot(*polygon.vertices_xy.T))) <= 20.0 + 1e-9
+    with pytest.raises(ScanError, match="minimum range"):
+        DepthScan(1.0, b, np.full(6, 30.0), 655.0, 25.0).capped(20.0)
+
+
+def test_a_scan_too_short_to_span_an_area_is_an_empty_view_not_an_error():
+    """Two rays of a 0.1 m sensor leave fewer than three vertices after the vertex spacing:
+    shapely raised a ValueError (uncaught by the service, which stops on the core's own errors).
+    Now an empty view, which the explorer does not keep as a keyframe."""
+    scan = DepthScan(0.0, np.array([-1.7, 1.7]), np.array([0.05, 0.08]), 0.1, 0.01)
+    polygon = scan_to_polygon(scan)
+    assert polygon.shape.is_empty and polygon.vertices_xy.shape == (0, 2) and polygon.kinds.size == 0
+    ex = Explorer()
+    result = ex.step(Odometry(0.0, Pose2()), scan)
+    assert not result.keyframe_added and len(ex.map) == 0

@@ -322,6 +322,11 @@ def scan_to_polygon(scan: DepthScan, params: PolygonParams | None = None) -> Fov
                 np.full(last.shape[0], VertexKind.FRONTIER, dtype=np.int8),
             )
         )
+    if pts.shape[0] < 3:  # a sensor reaching less than a vertex spacing, seen by a ray or two: no area
+        none = np.zeros(0, dtype=bool)
+        return FovPolygon(
+            np.zeros((0, 2)), np.zeros(0, dtype=np.int8), np.zeros((0, 2)), False, shapely.Polygon(), none, none
+        )
     shape = shapely.Polygon(pts)
     if not shape.is_valid:
         shape = _largest_valid_part(shape)

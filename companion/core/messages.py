@@ -65,6 +65,22 @@ class DepthScan:
         if not math.isfinite(self.stamp_s):
             raise ScanError("scan stamp must be finite")
 
+    def capped(self, max_range_m: float) -> DepthScan:
+        """The scan as a sensor of at most ``max_range_m`` would report it: returns from farther
+        are no return (a range-limit frontier there), and that is its maximum range. Itself when
+        its range is no longer. Polygons grow with the range (their arcs keep a vertex spacing):
+        a sensor claiming 10 km of range made one step take 20 s."""
+        if self.max_range_m <= max_range_m:
+            return self
+        if self.min_range_m >= max_range_m:
+            raise ScanError(
+                f"the scan's minimum range {self.min_range_m:g} m is at or beyond the {max_range_m:g} m the map takes"
+            )
+        r = self.ranges_m
+        return DepthScan(
+            self.stamp_s, self.bearings_rad, np.where(r >= max_range_m, np.inf, r), max_range_m, self.min_range_m
+        )
+
 
 @dataclass(frozen=True, slots=True)
 class LoopClosure:
