@@ -180,6 +180,12 @@ class Service:
             await self._safe_stop(airborne)
             self._set_state(MissionState.FAILED, str(err))
             return self.report()
+        except Exception as err:  # a bug: still leave the vehicle landed or holding, never to a timeout
+            self.termination = "error"
+            log.exception("internal error, stopping the flight")
+            await self._safe_stop(airborne)
+            self._set_state(MissionState.FAILED, f"internal error: {err!r}")
+            return self.report()
         await self._safe_stop(airborne, land=True)
         self._set_state(MissionState.DONE, self.termination)
         return self.report()

@@ -305,6 +305,44 @@ def test_service_lands_when_scans_go_stale() -> None:
     assert service.health.state is MissionState.FAILED
 
 
+def test_service_lands_on_a_bug_in_a_step_rather_than_leaving_the_vehicle_to_a_timeout(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An exception the service does not expect (a bug, say shapely's ValueError from a view too
+    small to be a polygon, as fuzzing found) used to end the mission task without a stop, leaving
+    the vehicle to the autopilot's setpoint timeout. It stops the flight as any error does."""
+
+    async def scenario() -> tuple[Service, FakeVehicle, dict]:  # type: ignore[type-arg]
+        fake = FakeVehicle()
+        service = Service(ServiceSettings(input_timeout_s=1.0, startup_timeout_s=2.0), [fake], fake)
+        steps = 0
+        real_step = service.explorer.step
+
+        def step_then_fail(*args: object) -> object:
+            nonlocal steps
+            steps += 1
+            if steps == 5:
+                raise ValueError("A linearring requires at least 4 coordinates.")
+            return real_step(*args)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(service.explorer, "step", step_then_fail)
+        task = asyncio.create_task(service.run())
+        await asyncio.sleep(0)
+        on_odom, on_scan = fake.handlers
+        for i in range(40):
+            on_odom(Odometry(i * 0.1, Pose2(0.0, 0.0, 0.0)))
+            on_scan(_scan(i * 0.1))
+            await asyncio.sleep(0.03)
+            if task.done():
+                break
+        return service, fake, await asyncio.wait_for(task, 5.0)
+
+    service, fake, report = asyncio.run(scenario())
+    assert fake.calls == ["take_off", "land"]
+    assert report["termination"] == "error" and service.health.state is MissionState.FAILED
+    assert "internal error" in service.health.reason and "linearring" in service.health.reason
+
+
 def test_service_steps_a_scan_with_the_odometry_of_its_moment_even_when_that_comes_later() -> None:
     """The scan for t = 1 arrives before the odometry for t = 1 (as ArduPilot's pose, paired
     from two messages, does): the step waits for it, so the view is taken at once, not a scan
