@@ -74,6 +74,13 @@ def test_payloads_round_trip() -> None:
             "non_finite",
         ),
         (b" " * (MAX_PAYLOAD_BYTES + 1), "oversized"),
+        # JSON integers have no bound: one of 400 digits raised an OverflowError out of the decoder
+        (
+            b'{"schema": 1, "type": "odometry", "stamp_s": 1'
+            + b"0" * 400
+            + b', "pose": {"x_m": 0, "y_m": 0, "yaw_rad": 0}}',
+            "non_finite",
+        ),
     ],
 )
 def test_bad_odometry_payloads_are_rejected_by_kind(payload: bytes, kind: str) -> None:
@@ -89,6 +96,8 @@ def test_bad_scans_are_rejected() -> None:
         ({"ranges_m": ["a"] * 10}, "malformed"),
         ({"angle_increment_rad": -0.1}, "malformed"),
         ({"angle_increment_rad": 1.0}, "invalid_scan"),  # 10 rays x 1 rad: more than a full turn
+        ({"ranges_m": [10**400] * 10}, "non_finite"),  # an OverflowError before
+        ({"angle_min_rad": -(10**400)}, "non_finite"),
     ):
         with pytest.raises(PayloadError) as err:
             decode_scan(json.dumps({**good, **change}).encode())

@@ -60,9 +60,20 @@ def _number(data: dict[str, Any], name: str) -> float:
     value = data.get(name)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise PayloadError("missing", f"{name} must be a number")
-    if not math.isfinite(value):
+    number = _finite_float(value)
+    if number is None:
         raise PayloadError("non_finite", f"{name} is not finite")
-    return float(value)
+    return number
+
+
+def _finite_float(value: float) -> float | None:
+    """``value`` as a finite float, or None: JSON integers have no bound, and one of 400 digits
+    raised an OverflowError (not a PayloadError) out of the decoder."""
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) else None
 
 
 def _pose(data: dict[str, Any], name: str) -> Pose2:
@@ -131,7 +142,10 @@ def decode_scan(payload: bytes) -> DepthScan:
     increment = _number(d, "angle_increment_rad")
     if increment <= 0.0:
         raise PayloadError("malformed", "angle_increment_rad must be positive")
-    r = np.array([math.inf if v is None else float(v) for v in ranges])
+    try:
+        r = np.array([math.inf if v is None else float(v) for v in ranges])
+    except OverflowError:
+        raise PayloadError("non_finite", "ranges_m holds a number too large for a float") from None
     if np.isnan(r).any():
         raise PayloadError("non_finite", "ranges_m holds NaN")
     bearings = (_number(d, "angle_min_rad") + increment * np.arange(r.size)).astype(np.float64)
