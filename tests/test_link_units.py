@@ -404,6 +404,38 @@ def test_service_never_takes_off_without_inputs() -> None:
     assert "no odometry and no scans" in report["reason"]
 
 
+def test_odometry_with_an_attitude_quaternion_that_is_no_rotation_is_dropped() -> None:
+    """ODOMETRY's ``q`` of all zeros (unset) read as heading north; a quaternion whose norm is
+    far from 1 is dropped and counted like a non-finite pose, a unit one passes."""
+    from types import SimpleNamespace
+
+    from companion.links.mavlink_link import MavlinkLink, MavlinkSettings, mavlink
+
+    link = MavlinkLink(MavlinkSettings("udpin:127.0.0.1:0"))
+    got: list[Odometry] = []
+    link.subscribe(on_odometry=got.append)
+
+    def odometry(q: tuple[float, float, float, float]) -> SimpleNamespace:
+        return SimpleNamespace(
+            frame_id=mavlink.MAV_FRAME_LOCAL_NED,
+            child_frame_id=mavlink.MAV_FRAME_BODY_FRD,
+            time_usec=1_000_000,
+            x=1.0,
+            y=2.0,
+            z=-1.5,
+            q=q,
+            vx=0.0,
+            vy=0.0,
+            reset_counter=0,
+        )
+
+    link._odometry(odometry((0.0, 0.0, 0.0, 0.0)), 0.0)
+    link._odometry(odometry((2.0, 0.0, 0.0, 0.0)), 0.0)
+    assert got == [] and link.dropped == {"ODOMETRY": 2}
+    link._odometry(odometry(quaternion_from_yaw(0.3)), 0.0)
+    assert len(got) == 1 and got[0].pose.yaw_rad == pytest.approx(math.pi / 2 - 0.3)
+
+
 def test_service_rejects_non_finite_odometry() -> None:
     fake = FakeVehicle()
     service = Service(ServiceSettings(), [fake], fake)

@@ -266,6 +266,10 @@ class MavlinkLink:
         if not all(math.isfinite(v) for v in values):
             self._drop("ODOMETRY", "non-finite pose")
             return
+        norm = math.sqrt(sum(v * v for v in q))
+        if abs(norm - 1.0) > 0.1:  # all zeros (unset) read as heading north: a wrong pose, not a pose
+            self._drop("ODOMETRY", f"the attitude quaternion's norm is {norm:.2f}, not 1")
+            return
         self._odometry_seen_s = now
         self.height_m = -float(msg.z)
         yaw = yaw_from_quaternion(q[0], q[1], q[2], q[3])
