@@ -25,6 +25,12 @@ class _Strict(BaseModel):
 _HOST_PORT_SCHEMES = {"udpin": True, "udp": True, "tcpin": True, "udpout": False, "udpbcast": False, "tcp": False}
 
 
+def _is_host_port(address: str, lowest_port: int) -> bool:
+    """``HOST:PORT`` with a host and a port from ``lowest_port`` to 65535 (MAVLink and Zenoh alike)."""
+    host, sep, port = address.rpartition(":")
+    return bool(sep and host and port.isdigit() and lowest_port <= int(port) <= 65535)
+
+
 def check_mavlink_url(url: str) -> str:
     """A pymavlink connection string (``udpin:HOST:PORT``, ``tcp:HOST:PORT``, ... or a serial
     device), checked before any socket opens: a bad port raised an OverflowError traceback, and a
@@ -36,9 +42,8 @@ def check_mavlink_url(url: str) -> str:
         )
     scheme, sep, rest = url.partition(":")
     if sep and scheme in _HOST_PORT_SCHEMES:
-        host, sep, port = rest.rpartition(":")
         lowest = 0 if _HOST_PORT_SCHEMES[scheme] else 1
-        if not (sep and host and port.isdigit() and lowest <= int(port) <= 65535):
+        if not _is_host_port(rest, lowest):
             raise ValueError(f"{url!r}: expected {scheme}:HOST:PORT with a port {lowest}-65535")
     elif not url.strip():
         raise ValueError("must name a connection (udpin:HOST:PORT, tcp:HOST:PORT, ...) or a serial device")
@@ -153,9 +158,8 @@ def check_zenoh_endpoint(endpoint: str, listening: bool) -> str:
     if not (sep and proto and address):
         raise ValueError(f"{endpoint!r}: expected <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
     if proto in _IP_LOCATORS:
-        host, sep, port = address.rpartition(":")
         lowest = 0 if listening else 1
-        if not (sep and host and port.isdigit() and lowest <= int(port) <= 65535):
+        if not _is_host_port(address, lowest):
             raise ValueError(f"{endpoint!r}: expected {proto}/HOST:PORT with a port {lowest}-65535")
     return endpoint
 

@@ -174,17 +174,16 @@ class Service:
             await self._safe_stop(airborne)
             self._set_state(MissionState.FAILED, "stopped by signal")
             raise
-        except (CompanionError, CoreError) as err:
+        except Exception as err:  # ours, or a bug: either way the vehicle lands or holds, never left to a timeout
             self.termination = "error"
-            log.error("%s", err)
+            if isinstance(err, (CompanionError, CoreError)):
+                log.error("%s", err)
+                reason = str(err)
+            else:
+                log.exception("internal error, stopping the flight")
+                reason = f"internal error: {err!r}"
             await self._safe_stop(airborne)
-            self._set_state(MissionState.FAILED, str(err))
-            return self.report()
-        except Exception as err:  # a bug: still leave the vehicle landed or holding, never to a timeout
-            self.termination = "error"
-            log.exception("internal error, stopping the flight")
-            await self._safe_stop(airborne)
-            self._set_state(MissionState.FAILED, f"internal error: {err!r}")
+            self._set_state(MissionState.FAILED, reason)
             return self.report()
         await self._safe_stop(airborne, land=True)
         self._set_state(MissionState.DONE, self.termination)
