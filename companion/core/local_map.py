@@ -688,9 +688,9 @@ class LocalMap:
             deep = beyond(p.closing_depth_m)
             check = np.flatnonzero(seen)
             deep_seen = view.holds(deep[check])
-            misplaced = self._misplaced(view)
+            owner = np.repeat(np.arange(len(kfs)), [i.size for i in idx])
+            misplaced = self._misplaced(view, owner[check], np.concatenate((near[check], deep[check])))
             if misplaced.any():  # neither closed nor closing: held by the other views alone
-                owner = np.repeat(np.arange(len(kfs)), [i.size for i in idx])
                 held = ~misplaced[owner[check]] & view.holds(near[check], among=~misplaced)
                 deep_seen &= view.holds(deep[check], among=~misplaced)
                 seen[check[~held]] = False
@@ -706,18 +706,31 @@ class LocalMap:
                 seen[shallow] = False
         _close_where(kfs, idx, seen)
 
-    def _misplaced(self, view: LocalView) -> NDArray[np.bool_]:
+    def _misplaced(self, view: LocalView, owners: NDArray[np.intp], points_xy: FloatArray) -> NDArray[np.bool_]:
         """Which of the view's keyframes (``view.poses`` order; never its own) were placed by a
         path of ``misplaced_min_hops`` or more and disagree with its own keyframe (see
         :meth:`_disagreeing`). Returns are exact in their own keyframe's frame; placed right, one
         view's walls lie on or beyond another's edge. Placed by a drifted chain of the graph,
-        they do not."""
+        they do not. Only asked of those that matter to the closing at hand: the owners (indices
+        in ``view.poses`` order) of the vertices it closes, and the views holding one of its
+        ``points_xy``; the rest count as agreeing (their answer would change nothing)."""
         hops = self._hops[view.keyframe_id]
-        far = [k for k in view.poses if hops.get(k, 0) >= self.params.misplaced_min_hops]
-        if not far:
-            return np.zeros(len(view.shapes), dtype=bool)
-        bad = self._disagreeing(view, far)
-        return np.array([k in bad for k in view.poses], dtype=bool)
+        ids = list(view.poses)
+        far = np.array([hops.get(k, 0) >= self.params.misplaced_min_hops for k in ids], dtype=bool)
+        out = np.zeros(len(ids), dtype=bool)
+        if not far.any():
+            return out
+        ask = np.zeros(len(ids), dtype=bool)
+        ask[owners] = True
+        rest = np.flatnonzero(far & ~ask)
+        if rest.size and points_xy.shape[0]:
+            inside = shapely.contains_xy(view.shapes[rest][:, None], points_xy[None, :, 0], points_xy[None, :, 1])
+            ask[rest[inside.any(axis=1)]] = True
+        ask &= far
+        if not ask.any():
+            return out
+        bad = self._disagreeing(view, [ids[i] for i in np.flatnonzero(ask)])
+        return np.array([k in bad for k in ids], dtype=bool)
 
     def _disagreeing(self, view: LocalView, ids: list[int]) -> set[int]:
         """Which of these neighbours disagree with the view's own keyframe by more than
@@ -754,7 +767,12 @@ class LocalMap:
         if own.shape[0]:
             pts = probes(own)
             rows, cols = np.nonzero(shapely.contains_xy(shapes[:, None], pts[None, :, 0], pts[None, :, 1]))
-            depth = shapely.distance(shapely.boundary(shapes[rows]), shapely.points(pts[cols]))
+            if rows.size:
+                # Each view's boundary once (a probe inside one view is inside it at many probes).
+                users, at = np.unique(rows, return_inverse=True)
+                depth = shapely.distance(shapely.boundary(shapes[users])[at], shapely.points(pts[cols]))
+            else:
+                depth = np.zeros(0)
             out[rows[depth > tol]] = True
         if any(w.shape[0] for w in walls):
             placed = np.concatenate(walls)
