@@ -403,6 +403,26 @@ def test_a_neighbour_placed_through_a_wall_the_keyframe_saw_neither_closes_nor_i
     )
 
 
+def test_a_misplaced_neighbour_is_found_wherever_it_could_close_a_vertex():
+    """The closing in the grown space asks a far neighbour whether it disagrees only where its
+    answer matters: it owns a vertex being closed, or holds one of the points probed beyond one.
+    Keyframe 1's view holds keyframe 0 (one hop, judged here), placed through the wall keyframe 0
+    saw: misplaced when it holds a probe point or owns the vertex, not asked otherwise."""
+    wall = DepthScan(0.0, BEARINGS, 2.0 / np.cos(BEARINGS), 5.0)
+    m = LocalMap(MapParams(misplaced_min_hops=1))
+    m.add_keyframe(0.0, Pose2(), scan_to_polygon(wall))
+    ahead = Pose2(1.5, 0.0, math.pi / 2)
+    m.add_keyframe(1.0, ahead, scan_to_polygon(open_scan()), parent=(0, ahead))
+    view = m.view(1)
+    assert list(view.poses) == [1, 0]
+    inside_0 = view.poses[0].apply(np.array([[1.0, 0.0]]))  # in keyframe 0's view only
+    outside = np.array([[-3.0, -3.0]])  # in neither
+    own, its = np.array([0]), np.array([1])  # owners, as indices in the view's order
+    assert m._misplaced(view, own, inside_0).tolist() == [False, True]  # it holds a probe
+    assert m._misplaced(view, own, outside).tolist() == [False, False]  # not asked
+    assert m._misplaced(view, its, outside).tolist() == [False, True]  # it owns a vertex
+
+
 def test_a_view_the_graph_placed_through_a_wall_the_keyframe_saw_does_not_close_its_frontiers():
     """The same disagreement along the pose graph: keyframe A sees a wall 2 m ahead; C, reached
     from A only through far-away B, is placed 1.5 m ahead of A facing left, its open view
