@@ -767,12 +767,9 @@ class LocalMap:
         if own.shape[0]:
             pts = probes(own)
             rows, cols = np.nonzero(shapely.contains_xy(shapes[:, None], pts[None, :, 0], pts[None, :, 1]))
-            if rows.size:
-                # Each view's boundary once (a probe inside one view is inside it at many probes).
-                users, at = np.unique(rows, return_inverse=True)
-                depth = shapely.distance(shapely.boundary(shapes[users])[at], shapely.points(pts[cols]))
-            else:
-                depth = np.zeros(0)
+            # Each view's boundary once (a probe inside one view is inside it at many probes).
+            users, at = np.unique(rows, return_inverse=True)
+            depth = shapely.distance(shapely.boundary(shapes[users])[at], shapely.points(pts[cols]))
             out[rows[depth > tol]] = True
         if any(w.shape[0] for w in walls):
             placed = np.concatenate(walls)
