@@ -6,7 +6,15 @@ import shapely
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.core.geometry import Pose2, apply_grouped, first_contact, wrap_angle
+from companion.core.geometry import (
+    Pose2,
+    apply_grouped,
+    closest_on_segments,
+    first_contact,
+    point_segment_distances,
+    wrap_angle,
+)
+from companion.core.scan_matching import _WallTable
 
 coord = st.floats(-100, 100, allow_nan=False)
 angle = st.floats(-10, 10, allow_nan=False)
@@ -77,3 +85,44 @@ def test_first_contact_is_where_and_which_point_the_disc_would_touch():
     # Of several in the way, the first touched: the side point for the wide disc.
     travel, i = first_contact(pts, (1.0, 0.0), 0.6)
     assert travel == pytest.approx(1.0 - math.sqrt(0.36 - 0.25)) and i == 1
+
+
+def _segments_and_points(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    segments = rng.uniform(-5.0, 5.0, size=(9, 2, 2))
+    segments[3, 1] = segments[3, 0]  # a wall seen as one point
+    points = np.vstack((rng.uniform(-7.0, 7.0, size=(40, 2)), segments[:, 0], segments[5:7].mean(axis=1)))
+    return segments, points
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_distances_to_segments_are_shapelys(seed):
+    segments, points = _segments_and_points(seed)
+    lines = shapely.linestrings(segments)
+    expected = shapely.distance(shapely.points(points)[:, None], lines[None, :])
+    closest, t = closest_on_segments(points, segments)
+    assert closest.shape == (points.shape[0], segments.shape[0], 2)
+    assert np.all((t >= 0.0) & (t <= 1.0))
+    # Each closest point lies on its segment, as far from the point as shapely says.
+    assert np.allclose(shapely.distance(shapely.points(closest), lines[None, :]), 0.0, atol=1e-9)
+    assert np.allclose(np.hypot(*(points[:, None, :] - closest).transpose(2, 0, 1)), expected, atol=1e-9)
+    assert np.allclose(point_segment_distances(points, segments), expected, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_match_pairs_each_point_with_its_nearest_wall(seed):
+    walls, points = _segments_and_points(seed)
+    dist, closest, normals, at_end = _WallTable.of(walls).nearest(points)
+    expected = shapely.distance(shapely.points(points)[:, None], shapely.linestrings(walls)[None, :]).min(axis=1)
+    assert np.allclose(dist, expected, atol=1e-9)
+    assert np.allclose(np.hypot(*(points - closest).T), dist, atol=1e-9)
+    apart = dist > 1e-9  # a point on a wall seen as one point has no direction from it
+    assert np.allclose(np.hypot(*normals[apart].T), 1.0)
+    ends = walls.reshape(-1, 2)
+    assert np.array_equal(
+        at_end, np.isclose(np.hypot(*(closest[:, None] - ends[None]).transpose(2, 0, 1)).min(axis=1), 0.0, atol=1e-12)
+    )
+    # Off a wall's end the normal points from the wall to the point (the residual is a distance);
+    # beside it, it is the wall's own normal, so the residual along it is the whole distance.
+    off = points - closest
+    assert np.allclose(np.abs(np.einsum("nk,nk->n", normals, off)), dist, atol=1e-9)

@@ -122,21 +122,46 @@ def move_each(poses: list[Pose2] | FloatArray, geometries: NDArray[np.object_]) 
     return moved
 
 
+@dataclass(frozen=True, slots=True)
+class Segments:
+    """M segments, given as (M, 2, 2), held as each closest-point query needs them: a caller
+    asking the same segments many times (a scan match's iterations) computes them once. x and y
+    are kept apart, each (1, M): numpy's products and sums over an axis of two (a point's x and
+    y) copy through buffers and cost several times the arithmetic (the same bits either way)."""
+
+    start_x: FloatArray  # each segment's first end
+    start_y: FloatArray
+    along_x: FloatArray  # from its first end to its second
+    along_y: FloatArray
+    length_sq: FloatArray  # ``along``'s squared length, at least 1e-12
+
+    @classmethod
+    def of(cls, segments: FloatArray) -> Segments:
+        ax, ay = segments[None, :, 0, 0], segments[None, :, 0, 1]
+        abx, aby = segments[None, :, 1, 0] - ax, segments[None, :, 1, 1] - ay
+        return cls(ax, ay, abx, aby, np.maximum(abx * abx + aby * aby, 1e-12))
+
+    def closest(self, points_xy: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """For N points: the x and y of the closest point of each segment to each point, and
+        where along the segment it lies, in [0, 1]; each (N, M)."""
+        px, py = points_xy[:, 0:1], points_xy[:, 1:2]
+        t = ((px - self.start_x) * self.along_x + (py - self.start_y) * self.along_y) / self.length_sq
+        np.minimum(np.maximum(t, 0.0, out=t), 1.0, out=t)
+        return self.start_x + t * self.along_x, self.start_y + t * self.along_y, t
+
+
 def closest_on_segments(points_xy: FloatArray, segments: FloatArray) -> tuple[FloatArray, FloatArray]:
     """For N points and M segments given as (M, 2, 2): the (N, M, 2) closest point of each
     segment to each point, and where along the segment it lies, (N, M) in [0, 1]."""
-    a = segments[None, :, 0, :]
-    ab = segments[None, :, 1, :] - a
-    ap = points_xy[:, None, :] - a
-    denom = np.maximum(np.einsum("nmk,nmk->nm", ab, ab), 1e-12)
-    t = np.clip(np.einsum("nmk,nmk->nm", ap, ab) / denom, 0.0, 1.0)
-    return np.asarray(a + t[..., None] * ab, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    cx, cy, t = Segments.of(segments).closest(points_xy)
+    return np.stack((cx, cy), axis=2), t
 
 
 def point_segment_distances(points_xy: FloatArray, segments: FloatArray) -> FloatArray:
     """(N, M) distances from N points to M segments given as (M, 2, 2)."""
-    closest, _ = closest_on_segments(points_xy, segments)
-    return np.asarray(np.linalg.norm(points_xy[:, None, :] - closest, axis=2), dtype=np.float64)
+    cx, cy, _ = Segments.of(segments).closest(points_xy)
+    ox, oy = points_xy[:, 0:1] - cx, points_xy[:, 1:2] - cy
+    return np.asarray(np.sqrt(ox * ox + oy * oy), dtype=np.float64)
 
 
 def first_contact(

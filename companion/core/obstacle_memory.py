@@ -143,7 +143,8 @@ def _pair_with_walls(
     inside = (j >= 0) & (j < b.size - 1)
     j = np.where(inside, j, 0)
     start, normals = walls.starts_xy[j], walls.normals_xy[j]
-    off = np.abs(np.einsum("nk,nk->n", normals, points_xy - start))
+    rel = points_xy - start
+    off = np.abs(normals[:, 0] * rel[:, 0] + normals[:, 1] * rel[:, 1])
     return inside & walls.ok[j], start, normals, off
 
 

@@ -18,7 +18,7 @@ import shapely
 from numpy.typing import NDArray
 
 from companion.core.fov_polygon import KIND_OBSTACLE, FovPolygon
-from companion.core.geometry import FloatArray, Pose2, closest_on_segments, wrap_angle
+from companion.core.geometry import FloatArray, Pose2, Segments, wrap_angle
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,8 +97,9 @@ def _icp(
     walls = walls[np.all((walls.max(axis=1) >= lo) & (walls.min(axis=1) <= hi), axis=1)]
     if walls.shape[0] == 0:
         return None
+    near_walls = _WallTable.of(walls)
     for _ in range(p.max_iterations):
-        dist, closest, normals, at_end = _nearest_on_walls(moved, walls)
+        dist, closest, normals, at_end = near_walls.nearest(moved)
         use = dist < gate
         if prior_sigmas is not None:
             # A return past a wall's end (the other view saw that wall less far) says nothing of
@@ -114,7 +115,7 @@ def _icp(
         gate = max(p.final_gate_m, p.gate_shrink * gate)
         if math.hypot(step.x_m, step.y_m) < 1e-3 and abs(step.yaw_rad) < 1e-4 and gate <= p.final_gate_m:
             break
-    dist, _, normals, _ = _nearest_on_walls(moved, walls)
+    dist, _, normals, _ = near_walls.nearest(moved)
     return pose, dist, normals
 
 
@@ -124,7 +125,7 @@ def fit_cost(points_xy: FloatArray, walls: FloatArray, pose: Pose2, truncate_m: 
     the same however far off), over the returns not past a wall's end."""
     if points_xy.shape[0] == 0 or walls.shape[0] == 0:
         return truncate_m**2
-    dist, _, _, at_end = _nearest_on_walls(pose.apply(points_xy), walls)
+    dist, _, _, at_end = _WallTable.of(walls).nearest(pose.apply(points_xy))
     capped = np.minimum(dist[~at_end], truncate_m)
     return float(np.mean(capped**2)) if capped.size else truncate_m**2
 
@@ -191,28 +192,41 @@ def _contradicted(points_xy: FloatArray, view: shapely.Geometry, p: ScanMatchPar
     return bool(deep > p.max_contradiction_fraction * points_xy.shape[0])
 
 
-def _nearest_on_walls(
-    points_xy: FloatArray, walls: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Each point's distance to its nearest wall, the nearest point on it, and the wall's unit
-    normal (the direction from that point when it is a wall's end: the residual is a distance),
-    and whether that nearest point is a wall's end."""
-    closest_all, t = closest_on_segments(points_xy, walls)
-    off_all = points_xy[:, None, :] - closest_all
-    squared = np.add.reduce(off_all * off_all, axis=2)  # the square root only of the nearest
-    j = np.argmin(squared, axis=1)
-    rows = np.arange(points_xy.shape[0])
-    dist = np.sqrt(squared[rows, j])
-    closest = closest_all[rows, j]
-    seg = walls[j, 1, :] - walls[j, 0, :]
-    normals = np.empty_like(seg)
-    normals[:, 0], normals[:, 1] = -seg[:, 1], seg[:, 0]
-    normals /= np.maximum(np.sqrt(np.add.reduce(seg * seg, axis=1)), 1e-12)[:, None]
-    at_end = (t[rows, j] <= 0.0) | (t[rows, j] >= 1.0)
-    off = points_xy - closest
-    far = at_end & (dist > 1e-9)
-    normals[far] = off[far] / dist[far, None]
-    return np.asarray(dist, dtype=np.float64), np.asarray(closest, dtype=np.float64), normals, np.asarray(at_end)
+@dataclass(frozen=True, slots=True)
+class _WallTable:
+    """Walls ((M, 2, 2)) as each nearest-wall search needs them: a match asks the same walls
+    for every iteration's points, so what depends on the walls alone is computed once."""
+
+    segments: Segments
+    normals: FloatArray  # (M, 2): unit normals
+
+    @classmethod
+    def of(cls, walls: FloatArray) -> _WallTable:
+        seg = walls[:, 1, :] - walls[:, 0, :]
+        normals = np.empty_like(seg)
+        normals[:, 0], normals[:, 1] = -seg[:, 1], seg[:, 0]
+        normals /= np.maximum(np.sqrt(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1]), 1e-12)[:, None]
+        return cls(Segments.of(walls), normals)
+
+    def nearest(self, points_xy: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Each point's distance to its nearest wall, the nearest point on it, and the wall's unit
+        normal (the direction from that point when it is a wall's end: the residual is a
+        distance), and whether that nearest point is a wall's end."""
+        cx, cy, t_all = self.segments.closest(points_xy)
+        ox, oy = points_xy[:, 0:1] - cx, points_xy[:, 1:2] - cy
+        squared = ox * ox + oy * oy  # the square root only of the nearest
+        j = np.argmin(squared, axis=1)
+        rows = np.arange(points_xy.shape[0])
+        dist = np.sqrt(squared[rows, j])
+        closest = np.empty_like(points_xy)
+        closest[:, 0], closest[:, 1] = cx[rows, j], cy[rows, j]
+        normals = self.normals[j]
+        t = t_all[rows, j]
+        at_end = (t <= 0.0) | (t >= 1.0)
+        far = at_end & (dist > 1e-9)
+        if far.any():
+            normals[far] = (points_xy[far] - closest[far]) / dist[far, None]
+        return dist, closest, normals, at_end
 
 
 def solve_step(
@@ -232,7 +246,8 @@ def solve_step(
     jac = np.empty((points_xy.shape[0], 3))
     jac[:, :2] = normals
     jac[:, 2] = normals[:, 1] * rel[:, 0] - normals[:, 0] * rel[:, 1]  # n . perp(p - c)
-    resid = np.einsum("nk,nk->n", normals, points_xy - closest_xy)
+    gap = points_xy - closest_xy
+    resid = normals[:, 0] * gap[:, 0] + normals[:, 1] * gap[:, 1]
     w = np.ones_like(resid) if robust_m is None else 1.0 / (1.0 + (resid / robust_m) ** 2)
     lhs, rhs = jac.T @ (w[:, None] * jac) + 1e-9 * np.eye(3), -jac.T @ (w * resid)
     if prior is not None:

@@ -317,7 +317,8 @@ def _touches(path: FloatArray, sets: list[_ReturnSet]) -> list[tuple[float, Floa
             out.append((0.0, None))
             continue
         pts = rel[near]
-        closest = np.sqrt(((path[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2).min(axis=0))
+        dx, dy = path[:, 0:1] - pts[None, :, 0], path[:, 1:2] - pts[None, :, 1]
+        closest = np.sqrt((dx * dx + dy * dy).min(axis=0))
         inside = contact[near] - closest
         i = int(np.argmax(inside))
         depth = float(inside[i])

@@ -163,9 +163,13 @@ def _wall_cells(
     walls_xy = walls_xy[np.all((walls_xy.max(axis=1) >= lo) & (walls_xy.min(axis=1) <= hi), axis=1)]
     if walls_xy.shape[0] == 0:
         return out
-    d = sample_segments(walls_xy, cell / 2.0)[None, :, :] - vertices_xy[:, None, :]  # (N, P, 2)
-    u = np.rint(np.einsum("npk,nk->np", d, outward_xy) / cell).astype(np.intp) + half
-    w = np.rint(np.einsum("npk,nk->np", d, side) / cell).astype(np.intp) + half
+    samples = sample_segments(walls_xy, cell / 2.0)
+    # (N, P): each sample's offset from each vertex, x and y apart (numpy's sums over an axis of
+    # two copy through buffers; the same bits).
+    dx = samples[None, :, 0] - vertices_xy[:, 0:1]
+    dy = samples[None, :, 1] - vertices_xy[:, 1:2]
+    u = np.rint((dx * outward_xy[:, 0:1] + dy * outward_xy[:, 1:2]) / cell).astype(np.intp) + half
+    w = np.rint((dx * side[:, 0:1] + dy * side[:, 1:2]) / cell).astype(np.intp) + half
     ok = (u >= 0) & (u < size) & (w >= 0) & (w < size)
     who = np.nonzero(ok)[0]
     out[who, u[ok], w[ok]] = True
