@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean venv
+.PHONY: demo test lint bench bench-step clean venv
 
 venv: $(STAMP)
 
@@ -26,7 +26,12 @@ lint: $(STAMP)
 	$(BIN)/mypy --strict companion/core
 
 bench: $(STAMP)
+	$(BIN)/python benchmarks/step_replay.py --out out/bench/step.json
 	$(BIN)/python benchmarks/run.py --out out/bench/results.json --generated 10
+
+# The step's cost alone (minutes): three flights replayed, each step's least time of five.
+bench-step: $(STAMP)
+	$(BIN)/python benchmarks/step_replay.py --out out/bench/step.json
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache

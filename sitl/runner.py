@@ -43,20 +43,50 @@ class Policy(Protocol):
 class PolygonPolicy:
     """The product: the local-polygon explorer, fed only what a real vehicle would report."""
 
-    def __init__(self, params: ExplorerParams | None = None) -> None:
+    def __init__(self, params: ExplorerParams | None = None, record: bool = False) -> None:
         self.explorer = Explorer(params)
         self.step_ms: list[float] = []
+        # With ``record``, every frame it was given and what it answered, in order: the
+        # explorer is deterministic, so these replay the flight's steps exactly (:func:`replay`).
+        self.recorded: list[tuple[SensorFrame, Setpoint | None]] | None = [] if record else None
 
     def step(self, frame: SensorFrame) -> Setpoint | None:
         t0 = time.perf_counter()
-        if frame.loop_closure is not None:
-            self.explorer.add_loop_closure(frame.loop_closure)
-        result = self.explorer.step(frame.odometry, frame.scan)
+        setpoint = _explorer_step(self.explorer, frame)
         self.step_ms.append((time.perf_counter() - t0) * 1e3)
-        return None if result.mode is Mode.COMPLETE else result.setpoint
+        if self.recorded is not None:
+            self.recorded.append((frame, setpoint))
+        return setpoint
 
     def summary(self) -> dict[str, Any]:
         return dict(self.explorer.map_counts())
+
+
+def _explorer_step(explorer: Explorer, frame: SensorFrame) -> Setpoint | None:
+    """One step of the product on one frame: loop closure, odometry and scan in, setpoint out
+    (None once exploration has ended)."""
+    if frame.loop_closure is not None:
+        explorer.add_loop_closure(frame.loop_closure)
+    result = explorer.step(frame.odometry, frame.scan)
+    return None if result.mode is Mode.COMPLETE else result.setpoint
+
+
+def replay(
+    recorded: list[tuple[SensorFrame, Setpoint | None]], params: ExplorerParams | None = None
+) -> tuple[list[float], bool]:
+    """Feed a recorded flight's frames (:class:`PolygonPolicy` with ``record``) to a fresh
+    explorer, with no simulator: each step's time (ms), and whether every setpoint was the
+    flight's. Step times without the flight's own noise: replayed a few times, each step's
+    least time is its cost on this machine (``benchmarks/step_replay.py``)."""
+    explorer = Explorer(params)
+    times_ms: list[float] = []
+    same = True
+    for frame, flown in recorded:
+        t0 = time.perf_counter()
+        setpoint = _explorer_step(explorer, frame)
+        times_ms.append((time.perf_counter() - t0) * 1e3)
+        same = same and setpoint == flown
+    return times_ms, same
 
 
 class GridPolicy:
@@ -143,12 +173,15 @@ def run_exploration(
     progress: Progress | None = None,
     map_label: str | None = None,
     input_latency_s: float = 0.0,
+    record_frames: bool = False,
 ) -> RunTrace:
     """Explore ``world`` until the planner ends, the vehicle crashes, or ``max_time_s`` passes.
 
     ``input_latency_s`` hands the planner each frame (scan, odometry, loop closures) that much
     later than it was taken, as a link to a real autopilot and camera does; its setpoints act at
-    once. Until the first frame arrives the vehicle holds where it started."""
+    once. Until the first frame arrives the vehicle holds where it started. ``record_frames``
+    keeps the polygon planner's frames and setpoints (``trace.policy.recorded``) for
+    :func:`replay`."""
     if planner not in PLANNERS:
         raise ValueError(f"planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
     if not (math.isfinite(input_latency_s) and input_latency_s >= 0.0):
@@ -164,7 +197,7 @@ def run_exploration(
         base.physics_rate_hz,
     )
     sim = Simulation(world, params, seed)
-    policy: Policy = PolygonPolicy(explorer_params) if planner == "polygon" else GridPolicy(world)
+    policy: Policy = PolygonPolicy(explorer_params, record_frames) if planner == "polygon" else GridPolicy(world)
     coverage = CoverageGrid(world)
     trace = RunTrace(report={}, coverage=coverage, policy=policy)
     frame = sim.frame()

@@ -64,3 +64,37 @@ def test_an_interrupted_bench_keeps_the_runs_it_flew(tmp_path: Path, monkeypatch
     with pytest.raises(KeyboardInterrupt):
         bench.main()
     assert [(r["map"], r["seed"]) for r in json.loads(out.read_text())] == [("nook", 1)]
+
+
+STEP_SCRIPT = [sys.executable, "benchmarks/step_replay.py"]
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--rounds", "0"], "--rounds"),
+        (["--maps", "nosuch"], "no such map in config/maps: nosuch"),
+        (["--maps"], "--maps"),
+    ],
+)
+def test_the_step_bench_refuses_bad_arguments_before_any_flight(tmp_path: Path, args: list[str], needle: str) -> None:
+    out = tmp_path / "s.json"
+    run = subprocess.run([*STEP_SCRIPT, *args, "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and needle in run.stderr and "Traceback" not in run.stderr
+    assert not out.exists()
+
+
+def test_the_step_bench_times_the_flights_own_steps_again(tmp_path: Path) -> None:
+    """``make bench-step``: a row per map and seed, each replay the flight's very steps, and each
+    step's least time over the replays summarised."""
+    out = tmp_path / "s.json"
+    cmd = [*STEP_SCRIPT, "--maps", "nook", "--rounds", "2", "--max-time", "8", "--out", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    (row,) = json.loads(out.read_text())
+    assert (row["map"], row["seed"], row["rounds"]) == ("nook", 1, 2)
+    assert row["replay_same_setpoints"] is True
+    assert row["steps"] == 81  # a frame every 0.1 s from 0 s to 8 s, both ends
+    least = row["least_step_ms"]
+    assert 0.0 < least["p50"] <= least["p99"] <= least["max"] and least["total"] >= least["max"]
+    assert str(out) in "".join(run.stdout.split())

@@ -22,7 +22,7 @@ from companion.core.planner import Mode, PlannerParams
 from companion.core.pose_graph import EdgeType
 from companion.core.setpoint_lead import LeadParams
 from sitl.depth_sensor import cast_rays
-from sitl.runner import run_exploration
+from sitl.runner import replay, run_exploration
 from sitl.simulation import SimParams
 from sitl.slam import SlamParams
 from sitl.world import load_world
@@ -62,6 +62,20 @@ def test_an_input_latency_hands_the_planner_every_frame_that_much_later(small_ro
     at_once = run_exploration(world, "polygon", seed=1, noise_scale=1.0, max_time_s=40)
     assert np.all(np.asarray(at_once.input_lags_s) == 0.0)
     assert at_once.report["path_length_m"] != late.report["path_length_m"]
+
+
+def test_a_recorded_flight_replays_to_the_very_same_setpoints(two_rooms):
+    """The explorer is deterministic: a fresh one fed a flight's frames (with its loop closures)
+    answers every step as the flight's did, which ``benchmarks/step_replay.py`` relies on to time
+    the same steps again. With other tuning the same frames give other answers: the check can fail."""
+    trace = run_exploration(load_world(two_rooms), "polygon", seed=4, max_time_s=60, record_frames=True)
+    recorded = trace.policy.recorded
+    assert len(recorded) == trace.report["step_ms"]["count"] > 100
+    assert any(frame.loop_closure is not None for frame, _ in recorded)
+    times_ms, same = replay(recorded)
+    assert same and len(times_ms) == len(recorded) and min(times_ms) > 0.0
+    _, same_with_other_tuning = replay(recorded, ExplorerParams(keyframe_distance_m=0.5))
+    assert not same_with_other_tuning
 
 
 def test_polygon_explorer_finds_the_room_behind_the_door(two_rooms):
