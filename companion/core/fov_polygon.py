@@ -378,10 +378,22 @@ def _nearest_rays(
     rng = np.hypot(pts[:, 0], pts[:, 1])
     bearing = np.arctan2(pts[:, 1], pts[:, 0])
     b = scan.bearings_rad
-    j = np.clip(np.searchsorted(b, bearing), 1, b.size - 1)
+    j = np.minimum(np.maximum(np.searchsorted(b, bearing), 1), b.size - 1)
     j = np.where(np.abs(bearing - b[j - 1]) <= np.abs(bearing - b[j]), j - 1, j)
-    on_ray = np.abs(bearing - b[j]) <= 0.5 * np.abs(np.gradient(b))[j]
+    on_ray = np.abs(bearing - b[j]) <= 0.5 * np.abs(_spacing_at(b, j))
     return rng, j, on_ray, bearing
+
+
+def _spacing_at(bearings_rad: FloatArray, j: NDArray[np.intp]) -> FloatArray:
+    """``np.gradient(bearings_rad)[j]`` (the same arithmetic, so the same bits) for just the rays
+    asked about: the whole gradient, every scan, cost more than the rest of the lookup."""
+    n = bearings_rad.size
+    if n < 2:
+        return np.asarray(np.gradient(bearings_rad), dtype=np.float64)[j]
+    inner = (bearings_rad[np.minimum(j + 1, n - 1)] - bearings_rad[np.maximum(j - 1, 0)]) / 2.0
+    first = (bearings_rad[1] - bearings_rad[0]) / 1.0
+    last = (bearings_rad[n - 1] - bearings_rad[n - 2]) / 1.0
+    return np.where(j == 0, first, np.where(j == n - 1, last, inner))
 
 
 def _past_return_m(
