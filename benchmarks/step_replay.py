@@ -2,7 +2,7 @@
 simulator, the thesis's drift), record every frame the product was given, then replay those
 frames into fresh explorers ``--rounds`` times with no simulator, and keep each step's least time.
 
-A flight's own step times move by 10-30 % from run to run on a shared machine (other work, the
+A flight's own step times move by 10-50 % from run to run on a shared machine (other work, the
 clock's speed), which hides changes of a few per cent. The explorer is deterministic, so each
 replay is the flight's very steps (checked: every setpoint must be the flight's), and a step's
 least time over a few replays is what it costs on this machine. Writes JSON and prints a table.
