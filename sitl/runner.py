@@ -21,11 +21,12 @@ from companion.core.fov_polygon import PolygonParams, returns_xy
 from companion.core.geometry import Pose2
 from companion.core.messages import Setpoint
 from companion.core.obstacle_memory import RecentReturns
-from companion.core.planner import Mode, PlannerParams
+from companion.core.planner import PlannerParams
 from companion.core.setpoint_lead import LeadParams, limit_lead_facing_memory
 from sitl.coverage import CoverageGrid
 from sitl.drift import DriftParams
 from sitl.grid_explorer import GridExplorer
+from sitl.replay import RecordedStep, explorer_step
 from sitl.simulation import SensorFrame, SimParams, Simulation
 from sitl.world import World
 
@@ -46,47 +47,20 @@ class PolygonPolicy:
     def __init__(self, params: ExplorerParams | None = None, record: bool = False) -> None:
         self.explorer = Explorer(params)
         self.step_ms: list[float] = []
-        # With ``record``, every frame it was given and what it answered, in order: the
-        # explorer is deterministic, so these replay the flight's steps exactly (:func:`replay`).
-        self.recorded: list[tuple[SensorFrame, Setpoint | None]] | None = [] if record else None
+        # With ``record``, every step's input and what it answered, in order: the explorer is
+        # deterministic, so these replay the flight's steps exactly (:func:`sitl.replay.replay`).
+        self.recorded: list[RecordedStep] | None = [] if record else None
 
     def step(self, frame: SensorFrame) -> Setpoint | None:
         t0 = time.perf_counter()
-        setpoint = _explorer_step(self.explorer, frame)
+        setpoint = explorer_step(self.explorer, frame.odometry, frame.scan, frame.loop_closure)
         self.step_ms.append((time.perf_counter() - t0) * 1e3)
         if self.recorded is not None:
-            self.recorded.append((frame, setpoint))
+            self.recorded.append((frame.odometry, frame.scan, frame.loop_closure, setpoint))
         return setpoint
 
     def summary(self) -> dict[str, Any]:
         return dict(self.explorer.map_counts())
-
-
-def _explorer_step(explorer: Explorer, frame: SensorFrame) -> Setpoint | None:
-    """One step of the product on one frame: loop closure, odometry and scan in, setpoint out
-    (None once exploration has ended)."""
-    if frame.loop_closure is not None:
-        explorer.add_loop_closure(frame.loop_closure)
-    result = explorer.step(frame.odometry, frame.scan)
-    return None if result.mode is Mode.COMPLETE else result.setpoint
-
-
-def replay(
-    recorded: list[tuple[SensorFrame, Setpoint | None]], params: ExplorerParams | None = None
-) -> tuple[list[float], bool]:
-    """Feed a recorded flight's frames (:class:`PolygonPolicy` with ``record``) to a fresh
-    explorer, with no simulator: each step's time (ms), and whether every setpoint was the
-    flight's. Step times without the flight's own noise: replayed a few times, each step's
-    least time is its cost on this machine (``benchmarks/step_replay.py``)."""
-    explorer = Explorer(params)
-    times_ms: list[float] = []
-    same = True
-    for frame, flown in recorded:
-        t0 = time.perf_counter()
-        setpoint = _explorer_step(explorer, frame)
-        times_ms.append((time.perf_counter() - t0) * 1e3)
-        same = same and setpoint == flown
-    return times_ms, same
 
 
 class GridPolicy:
@@ -180,8 +154,8 @@ def run_exploration(
     ``input_latency_s`` hands the planner each frame (scan, odometry, loop closures) that much
     later than it was taken, as a link to a real autopilot and camera does; its setpoints act at
     once. Until the first frame arrives the vehicle holds where it started. ``record_frames``
-    keeps the polygon planner's frames and setpoints (``trace.policy.recorded``) for
-    :func:`replay`."""
+    keeps the polygon planner's inputs and setpoints (``trace.policy.recorded``) for
+    :func:`sitl.replay.replay`."""
     if planner not in PLANNERS:
         raise ValueError(f"planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
     if not (math.isfinite(input_latency_s) and input_latency_s >= 0.0):

@@ -75,6 +75,7 @@ STEP_SCRIPT = [sys.executable, "benchmarks/step_replay.py"]
         (["--rounds", "0"], "--rounds"),
         (["--maps", "nosuch"], "no such map in config/maps: nosuch"),
         (["--maps"], "--maps"),
+        (["--baseline", "/nonexistent"], "is not a checkout of companion"),
     ],
 )
 def test_the_step_bench_refuses_bad_arguments_before_any_flight(tmp_path: Path, args: list[str], needle: str) -> None:
@@ -98,3 +99,19 @@ def test_the_step_bench_times_the_flights_own_steps_again(tmp_path: Path) -> Non
     least = row["least_step_ms"]
     assert 0.0 < least["p50"] <= least["p99"] <= least["max"] and least["total"] >= least["max"]
     assert str(out) in "".join(run.stdout.split())
+
+
+def test_the_step_bench_compares_with_a_baseline_on_the_same_steps(tmp_path: Path) -> None:
+    """``--baseline DIR`` replays the same frames into that checkout's code, in turn with this
+    tree's: against itself, the same answers, and ratios near one (loose bounds: these are times)."""
+    out = tmp_path / "s.json"
+    root = str(Path(__file__).resolve().parents[1])
+    cmd = [*STEP_SCRIPT, "--maps", "nook", "--rounds", "2", "--max-time", "5", "--baseline", root, "--out", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    (row,) = json.loads(out.read_text())
+    assert row["replay_same_setpoints"] is True and row["baseline_same_setpoints"] is True
+    assert row["baseline"] == root and row["baseline_least_step_ms"]["total"] > 0.0
+    assert set(row["ratio_to_baseline"]) == {"total", "p50", "p99"}
+    assert 0.2 < row["ratio_to_baseline"]["total"] < 5.0
+    assert "againstthebaseline" in "".join(run.stdout.split())  # rich wraps the line

@@ -22,7 +22,8 @@ from companion.core.planner import Mode, PlannerParams
 from companion.core.pose_graph import EdgeType
 from companion.core.setpoint_lead import LeadParams
 from sitl.depth_sensor import cast_rays
-from sitl.runner import replay, run_exploration
+from sitl.replay import replay
+from sitl.runner import run_exploration
 from sitl.simulation import SimParams
 from sitl.slam import SlamParams
 from sitl.world import load_world
@@ -71,7 +72,7 @@ def test_a_recorded_flight_replays_to_the_very_same_setpoints(two_rooms):
     trace = run_exploration(load_world(two_rooms), "polygon", seed=4, max_time_s=60, record_frames=True)
     recorded = trace.policy.recorded
     assert len(recorded) == trace.report["step_ms"]["count"] > 100
-    assert any(frame.loop_closure is not None for frame, _ in recorded)
+    assert any(loop_closure is not None for _, _, loop_closure, _ in recorded)
     times_ms, same = replay(recorded)
     assert same and len(times_ms) == len(recorded) and min(times_ms) > 0.0
     _, same_with_other_tuning = replay(recorded, ExplorerParams(keyframe_distance_m=0.5))
