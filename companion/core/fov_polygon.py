@@ -386,10 +386,9 @@ def _nearest_rays(
 
 def _spacing_at(bearings_rad: FloatArray, j: NDArray[np.intp]) -> FloatArray:
     """``np.gradient(bearings_rad)[j]`` (the same arithmetic, so the same bits) for just the rays
-    asked about: the whole gradient, every scan, cost more than the rest of the lookup."""
+    asked about: the whole gradient, every scan, cost more than the rest of the lookup. A
+    :class:`DepthScan` has two rays at least."""
     n = bearings_rad.size
-    if n < 2:
-        return np.asarray(np.gradient(bearings_rad), dtype=np.float64)[j]
     inner = (bearings_rad[np.minimum(j + 1, n - 1)] - bearings_rad[np.maximum(j - 1, 0)]) / 2.0
     first = (bearings_rad[1] - bearings_rad[0]) / 1.0
     last = (bearings_rad[n - 1] - bearings_rad[n - 2]) / 1.0
