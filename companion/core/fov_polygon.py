@@ -390,8 +390,8 @@ def _spacing_at(bearings_rad: FloatArray, j: NDArray[np.intp]) -> FloatArray:
     :class:`DepthScan` has two rays at least."""
     n = bearings_rad.size
     inner = (bearings_rad[np.minimum(j + 1, n - 1)] - bearings_rad[np.maximum(j - 1, 0)]) / 2.0
-    first = (bearings_rad[1] - bearings_rad[0]) / 1.0
-    last = (bearings_rad[n - 1] - bearings_rad[n - 2]) / 1.0
+    first = bearings_rad[1] - bearings_rad[0]
+    last = bearings_rad[n - 1] - bearings_rad[n - 2]
     return np.where(j == 0, first, np.where(j == n - 1, last, inner))
 
 

@@ -202,11 +202,11 @@ class _WallTable:
 
     @classmethod
     def of(cls, walls: FloatArray) -> _WallTable:
-        seg = walls[:, 1, :] - walls[:, 0, :]
-        normals = np.empty_like(seg)
-        normals[:, 0], normals[:, 1] = -seg[:, 1], seg[:, 0]
-        normals /= np.maximum(np.sqrt(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1]), 1e-12)[:, None]
-        return cls(Segments.of(walls), normals)
+        segments = Segments.of(walls)
+        along_x, along_y = segments.along_x[0], segments.along_y[0]
+        normals = np.column_stack((-along_y, along_x))
+        normals /= np.maximum(np.sqrt(along_x * along_x + along_y * along_y), 1e-12)[:, None]
+        return cls(segments, normals)
 
     def nearest(self, points_xy: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """Each point's distance to its nearest wall, the nearest point on it, and the wall's unit
