@@ -228,12 +228,13 @@ def tuning_for(
     thesis's drift, seeds 1-3, while tuning: every 3 m, 7 of 18 runs ended below coverage 0.99;
     every metre, 2).
 
-    Odometry edges are matched (see companion.core.odometry_matching) only with a back end: with
-    the simulated one it saved 4 % of the exploration time on 22 maps, seeds 1-10. Without one,
-    where the map's closing along the graph and the own loop closures were tuned to the
-    odometry's errors, its variants reached coverage 0.99 in 19-26 of 30 runs against 25 without
-    (the shipped one 25, and 28 against 24 on seeds 6-10), one stopping at 0.36: not yet a case
-    for changing that mode (session 27, docs/benchmarks.md).
+    Odometry edges are matched (see companion.core.odometry_matching) with a back end and with
+    own loop closures, not with none. With the simulated back end it saved 4 % of the
+    exploration time on 22 maps, seeds 1-10 (session 27). With own loop closures it lowers the
+    drift the matcher must bridge (six maps, seeds 1-5, thesis drift: mean coverage 0.937 ->
+    0.992, the worst run 0.41 -> 0.93), and with a match under its ambiguity test no longer
+    dropped for each new keyframe (companion.core.loop_closing.ViewMatcher.start), twice the
+    loop closures (docs/benchmarks.md, session 62). With none, not measured since session 27.
 
     The setpoint lead checks the way momentum takes the vehicle (companion.core.setpoint_lead)
     only with a back end too: there it saved 4.6 % of the exploration time (22 maps, seeds 1-5);
@@ -273,7 +274,7 @@ def tuning_for(
     if not back_end:
         params = replace(
             params,
-            odometry_matching=replace(params.odometry_matching, enabled=False),
+            odometry_matching=replace(params.odometry_matching, enabled=loop_closures == "scan_matching"),
             lead=replace(params.lead, predict_way=False, look_follow_m=0.0),  # an unaligned memory stays put
             use_reported_velocity=False,
             obstacle_memory_margin_m=0.0,

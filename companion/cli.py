@@ -103,7 +103,7 @@ def _parser() -> argparse.ArgumentParser:
         "--odometry-matching",
         choices=("on", "off"),
         help="correct each keyframe's odometry edge by matching its view to the previous one's, as "
-        "exploration.match_odometry_edges in a config (default: on with the simulated back end only)",
+        "exploration.match_odometry_edges in a config (default: on, but off with --loop-closures none)",
     )
     sim.add_argument("--report", type=Path, help="write the JSON report here")
     sim.add_argument("--plots", type=Path, help="write PNG figures into this folder")

@@ -141,7 +141,8 @@ class ExplorationConfig(_Strict):
             "correct each keyframe's odometry edge by matching its view's walls to the previous "
             "view's (companion.core.odometry_matching): the walls fix what they can, the odometry "
             "the rest (along a corridor). Unset: on with a SLAM back end (inputs.loop_closure: "
-            "zenoh), off otherwise, as measured (docs/benchmarks.md, session 27)"
+            "zenoh) or the companion's own loop closures (scan_matching), off with none, as "
+            "measured (docs/benchmarks.md, sessions 27 and 62)"
         ),
     )
 

@@ -208,8 +208,9 @@ def test_config_without_a_loop_closure_source_closes_views_along_the_graph(sourc
     # without one short of full coverage; those keep the check along the motion's line
     assert params.lead.predict_way is (source == "zenoh")
     assert params.map.chain_margin_per_hop_m == 0.05  # the thesis's drift unless told otherwise
-    # Odometry edges matched with a back end only, as measured, unless the config says:
-    assert params.odometry_matching.enabled is (source == "zenoh")
+    # Odometry edges matched with a back end or own loop closures (not none), as measured,
+    # unless the config says:
+    assert params.odometry_matching.enabled is (source != "none")
     for told in (True, False):
         update = {"exploration": config.exploration.model_copy(update={"match_odometry_edges": told})}
         assert explorer_params(config.model_copy(update=update)).odometry_matching.enabled is told

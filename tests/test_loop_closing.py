@@ -233,3 +233,47 @@ def test_a_match_that_a_restart_finds_elsewhere_as_well_is_not_taken(monkeypatch
     assert (len(found) == 1) is taken
     if taken:
         assert found[0].earlier_to_later == here
+
+
+def _stub_matching(monkeypatch, here: Pose2) -> list[Pose2]:
+    """Every match lands on ``here`` and is accepted: the search's bookkeeping alone is tested."""
+    calls: list[Pose2] = []
+
+    def aligned(points, walls, guess, params=None):  # type: ignore[no-untyped-def]
+        calls.append(guess)
+        return here, np.zeros(len(points)), np.tile([1.0, 0.0], (len(points), 1))
+
+    def accepted(source, source_view, target, target_view, result, params=None):  # type: ignore[no-untyped-def]
+        return ScanMatch(result[0], 30, 0.01, 0.4, (0.0, 1.0))
+
+    monkeypatch.setattr(loop_closing, "match_to_walls", aligned)
+    monkeypatch.setattr(loop_closing, "accept_match", accepted)
+    return calls
+
+
+def test_a_new_keyframe_waits_for_a_match_under_its_ambiguity_test(monkeypatch):
+    """A keyframe comes every few steps and a search spans several: a match found is tested to
+    the end and joined, and only then is the newest keyframe searched for (the ones it replaced
+    while waiting are not); a search with no match yet is dropped for the new keyframe."""
+    m = build_loop(ROOM, Pose2(0.4, -0.3, 0.0), ROUND)
+    last = len(ROUND) - 1
+    here = ROUND[0].between(ROUND[last])
+    calls = _stub_matching(monkeypatch, here)
+    matcher = ViewMatcher(LoopClosingParams(enabled=True, max_candidates=1))
+    matcher.start(last)
+    assert matcher.step(m) is None  # its candidates
+    assert matcher.step(m) is None and len(calls) == 1  # the match, now under test
+    matcher.start(last - 2)
+    matcher.start(last - 1)  # keyframes come meanwhile: the newest waits
+    found = [c for c in (matcher.step(m) for _ in range(7)) if c is not None]
+    assert [(c.earlier_id, c.later_id) for c in found] == [(0, last)] and len(calls) == 8
+    assert matcher.busy  # then on to the newest keyframe, with a search of its own
+    assert matcher.step(m) is None and len(calls) == 8  # its candidates: none faces its way
+    assert matcher.step(m) is None and not matcher.busy
+    # A search still looking for a match gives way to the new keyframe at once.
+    matcher.start(last)
+    assert matcher.step(m) is None  # candidates, no match yet
+    matcher.start(last - 1)
+    while matcher.busy:
+        assert matcher.step(m) is None
+    assert len(calls) == 8

@@ -102,6 +102,7 @@ class ViewMatcher:
     def __init__(self, params: LoopClosingParams) -> None:
         self.params = params
         self._keyframe_id: int | None = None
+        self._next_id: int | None = None  # the newest keyframe waiting for the search going on
         self._source: FloatArray = np.zeros((0, 2))
         self._candidates: list[Candidate] | None = None
         self._found: FoundClosure | None = None  # the match under test
@@ -112,8 +113,19 @@ class ViewMatcher:
         return self._keyframe_id is not None
 
     def start(self, keyframe_id: int) -> None:
-        """Look for a loop closure for this (new) keyframe, dropping any search still going on."""
+        """Look for a loop closure for this (new) keyframe, dropping the search going on unless
+        a match found is under its ambiguity test: that one ends first, the newest keyframe
+        waiting (only the newest: a keyframe it replaces is not searched for). A search spans a
+        few steps and a keyframe comes every few steps when flying: dropped mid-test, two of
+        every three matches found were lost."""
+        if self._found is not None:
+            self._next_id = keyframe_id
+            return
+        self._begin(keyframe_id)
+
+    def _begin(self, keyframe_id: int | None) -> None:
         self._keyframe_id = keyframe_id
+        self._next_id = None
         self._candidates = None
         self._found = None
         self._restarts = []
@@ -131,7 +143,7 @@ class ViewMatcher:
         if self._found is not None:
             return self._restart(local_map)
         if not self._candidates:
-            self._keyframe_id = None
+            self._begin(self._next_id)
             return None
         candidate = self._candidates.pop(0)
         found = self._match(local_map, candidate, candidate.guess)
@@ -155,8 +167,7 @@ class ViewMatcher:
             return None
         if self._restarts:
             return None
-        self._found = None
-        self._keyframe_id = None
+        self._begin(self._next_id)
         return found
 
     def _match(
