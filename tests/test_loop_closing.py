@@ -277,3 +277,23 @@ def test_a_new_keyframe_waits_for_a_match_under_its_ambiguity_test(monkeypatch):
     while matcher.busy:
         assert matcher.step(m) is None
     assert len(calls) == 8
+
+
+def test_only_views_with_walls_near_the_new_views_points_are_candidates():
+    """A match needs ``min_inliers`` points within its first gate of the old view's walls from
+    its first iteration; candidates that cannot give that are passed over, not matched in vain
+    (one step each), so the search reaches the views that can."""
+    m = build_loop(ROOM, Pose2(0.4, -0.3, 0.0), ROUND)
+    last = len(ROUND) - 1
+    params = LoopClosingParams(enabled=True)
+    source = loop_closing._view_points(m.keyframes[last], params.point_spacing_m)
+    every = loop_closing.loop_closure_candidates(m, last, params)
+    near = loop_closing.loop_closure_candidates(m, last, params, source)
+    assert every and [c.old_id for c in near] == [c.old_id for c in every]  # the revisit shares walls
+    for c in every:
+        assert loop_closing.match_to_walls(source, m.keyframes[c.old_id].walls, c.guess, params.match) is not None
+    # The same view's points 3 m off (past the 1 m gate of every wall) pair with none of them.
+    far = source + np.array([3.0, 3.0])
+    assert loop_closing.loop_closure_candidates(m, last, params, far) == []
+    few = source[: params.match.min_inliers - 1]  # too few points to be matched at all
+    assert loop_closing.loop_closure_candidates(m, last, params, few) == []

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from companion.core.geometry import FloatArray, Pose2, wrap_angles
+from companion.core.geometry import FloatArray, Pose2, point_segment_distances, wrap_angles
 from companion.core.local_map import Keyframe, LocalMap
 from companion.core.scan_matching import ScanMatch, ScanMatchParams, accept_match, match_to_walls, view_points
 
@@ -64,9 +64,15 @@ class Candidate:
     hops: int
 
 
-def loop_closure_candidates(local_map: LocalMap, keyframe_id: int, params: LoopClosingParams) -> list[Candidate]:
+def loop_closure_candidates(
+    local_map: LocalMap, keyframe_id: int, params: LoopClosingParams, source_xy: FloatArray | None = None
+) -> list[Candidate]:
     """The old keyframes worth matching keyframe ``keyframe_id``'s view to, nearest first: far
-    along the graph, near it and facing its way as the graph places them, with walls to match."""
+    along the graph, near it and facing its way as the graph places them, with walls to match.
+    Given the new view's points (``source_xy``, its frame), only views with enough walls near
+    them as the graph places the two: a match pairs only points within its first gate of a wall,
+    and needs ``min_inliers`` of them from the start (most views near a revisit share no wall:
+    a 90-degree view of a room sees little of it)."""
     new = local_map.keyframes[keyframe_id]
     if new.walls.shape[0] == 0:
         return []
@@ -84,10 +90,23 @@ def loop_closure_candidates(local_map: LocalMap, keyframe_id: int, params: LoopC
         if local_map.keyframes[old_id].walls.shape[0] == 0:
             continue
         old_in_new = Pose2(float(x[row]), float(y[row]), float(yaw[row]))
-        out.append(Candidate(old_id, old_in_new.inverse(), int(reached.hops[row])))
+        guess = old_in_new.inverse()
+        if source_xy is not None and not _pairs_enough(source_xy, local_map.keyframes[old_id].walls, guess, params):
+            continue
+        out.append(Candidate(old_id, guess, int(reached.hops[row])))
         if len(out) == params.max_candidates:
             break
     return out
+
+
+def _pairs_enough(source_xy: FloatArray, walls: FloatArray, guess: Pose2, params: LoopClosingParams) -> bool:
+    """Whether enough of the source's points lie within the match's first gate of these walls
+    at ``guess``: the test the match's first iteration makes (:func:`match_to_walls`)."""
+    gate = params.match.start_gate_m
+    if source_xy.shape[0] < params.match.min_inliers:
+        return False
+    near = point_segment_distances(guess.apply(source_xy), walls).min(axis=1) < gate
+    return int(np.count_nonzero(near)) >= params.match.min_inliers
 
 
 class ViewMatcher:
@@ -137,8 +156,8 @@ class ViewMatcher:
             return None
         p = self.params
         if self._candidates is None:
-            self._candidates = loop_closure_candidates(local_map, kf_id, p)
             self._source = _view_points(local_map.keyframes[kf_id], p.point_spacing_m)
+            self._candidates = loop_closure_candidates(local_map, kf_id, p, self._source)
             return None
         if self._found is not None:
             return self._restart(local_map)
