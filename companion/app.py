@@ -235,7 +235,8 @@ def tuning_for(
     0.992, the worst run 0.41 -> 0.93); with a match under its ambiguity test no longer dropped
     for each new keyframe (companion.core.loop_closing.ViewMatcher.start) as well, twice the
     loop closures, and seeds 1-10 reached coverage 0.99 in 53 runs of 60 against 46 (55 with
-    the candidates that cannot match passed over; docs/benchmarks.md, session 62). With none, not measured since session 27.
+    the candidates that cannot match passed over; docs/benchmarks.md, session 62). With none,
+    not measured since session 27.
 
     The setpoint lead checks the way momentum takes the vehicle (companion.core.setpoint_lead)
     only with a back end too: there it saved 4.6 % of the exploration time (22 maps, seeds 1-5);
