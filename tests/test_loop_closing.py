@@ -15,7 +15,7 @@ from companion.core.local_map import LocalMap
 from companion.core.loop_closing import LoopClosingParams, ViewMatcher
 from companion.core.messages import DepthScan, Odometry
 from companion.core.pose_graph import EdgeType
-from companion.core.scan_matching import ScanMatch, accept_match, match_to_walls
+from companion.core.scan_matching import ScanMatch, accept_match, enough_pairs, match_to_walls
 from sitl.depth_sensor import SensorParams, cast_rays
 
 
@@ -297,3 +297,18 @@ def test_only_views_with_walls_near_the_new_views_points_are_candidates():
     assert loop_closing.loop_closure_candidates(m, last, params, far) == []
     few = source[: params.match.min_inliers - 1]  # too few points to be matched at all
     assert loop_closing.loop_closure_candidates(m, last, params, few) == []
+
+
+def test_a_guess_without_enough_pairs_is_one_the_match_gives_up_on():
+    """``enough_pairs`` is the match's own first test, made beforehand: wherever it says no, the
+    match from that guess fails, so passing such a candidate over loses no loop closure."""
+    points = along(CORNER, 0.1)
+    said_no = 0
+    for dx, dy in itertools.product(np.linspace(-2.5, 2.5, 11), repeat=2):
+        guess = Pose2(float(dx), float(dy), 0.1)
+        if not enough_pairs(points, CORNER, guess):
+            said_no += 1
+            assert match_to_walls(points, CORNER, guess) is None
+    assert 0 < said_no < 121  # near guesses pair, far ones do not
+    assert enough_pairs(points, CORNER, Pose2.identity())
+    assert not enough_pairs(points[:10], CORNER, Pose2.identity())  # fewer points than a match needs

@@ -14,9 +14,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from companion.core.geometry import FloatArray, Pose2, point_segment_distances, wrap_angles
+from companion.core.geometry import FloatArray, Pose2, wrap_angles
 from companion.core.local_map import Keyframe, LocalMap
-from companion.core.scan_matching import ScanMatch, ScanMatchParams, accept_match, match_to_walls, view_points
+from companion.core.scan_matching import (
+    ScanMatch,
+    ScanMatchParams,
+    accept_match,
+    enough_pairs,
+    match_to_walls,
+    view_points,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,22 +98,14 @@ def loop_closure_candidates(
             continue
         old_in_new = Pose2(float(x[row]), float(y[row]), float(yaw[row]))
         guess = old_in_new.inverse()
-        if source_xy is not None and not _pairs_enough(source_xy, local_map.keyframes[old_id].walls, guess, params):
+        if source_xy is not None and not enough_pairs(
+            source_xy, local_map.keyframes[old_id].walls, guess, params.match
+        ):
             continue
         out.append(Candidate(old_id, guess, int(reached.hops[row])))
         if len(out) == params.max_candidates:
             break
     return out
-
-
-def _pairs_enough(source_xy: FloatArray, walls: FloatArray, guess: Pose2, params: LoopClosingParams) -> bool:
-    """Whether enough of the source's points lie within the match's first gate of these walls
-    at ``guess``: the test the match's first iteration makes (:func:`match_to_walls`)."""
-    gate = params.match.start_gate_m
-    if source_xy.shape[0] < params.match.min_inliers:
-        return False
-    near = point_segment_distances(guess.apply(source_xy), walls).min(axis=1) < gate
-    return int(np.count_nonzero(near)) >= params.match.min_inliers
 
 
 class ViewMatcher:

@@ -63,6 +63,17 @@ def match_to_walls(
     return _icp(points_xy, walls, guess, params or ScanMatchParams(), None)
 
 
+def enough_pairs(points_xy: FloatArray, walls: FloatArray, guess: Pose2, params: ScanMatchParams | None = None) -> bool:
+    """Whether :func:`match_to_walls` from ``guess`` gets past its first iteration: at least
+    ``min_inliers`` of the points within ``start_gate_m`` of a wall (the same nearest-wall
+    distances it pairs by). A cheap test of a candidate before the match's iterations."""
+    p = params or ScanMatchParams()
+    if points_xy.shape[0] < p.min_inliers or walls.shape[0] == 0:
+        return False
+    dist = _WallTable.of(walls).nearest(guess.apply(points_xy))[0]
+    return int(np.count_nonzero(dist < p.start_gate_m)) >= p.min_inliers
+
+
 def match_with_prior(
     points_xy: FloatArray,
     walls: FloatArray,
