@@ -199,6 +199,10 @@ def _wall_facts(kf: Keyframe, p: MapParams) -> _WallFacts:
     return facts
 
 
+# The neighbourhood walk's overlap test asks every this-many-th corner of a view first.
+_CORNER_STRIDE = 8
+
+
 def _any_corner_inside(shape: shapely.Polygon, poses: FloatArray, corners: list[FloatArray]) -> NDArray[np.bool_]:
     """For each view (its polygon's corners, moved by its pose: rows of x, y, yaw): whether any
     corner lies inside ``shape``. Every eighth corner is asked first, and only the views none of
@@ -209,9 +213,6 @@ def _any_corner_inside(shape: shapely.Polygon, poses: FloatArray, corners: list[
     if rest.size:
         inside[rest] = _any_inside(shape, poses[rest], [corners[i] for i in rest])
     return inside
-
-
-_CORNER_STRIDE = 8
 
 
 def _any_inside(shape: shapely.Polygon, poses: FloatArray, corners: list[FloatArray]) -> NDArray[np.bool_]:
@@ -887,8 +888,8 @@ def _loose_limit(kf: Keyframe, indices: NDArray[np.intp]) -> NDArray[np.bool_]:
 
 def _past_end_m(kf: Keyframe, indices: NDArray[np.intp], p: MapParams) -> FloatArray:
     """How far from a wall's end, where they lie past it, each of these vertices may lie and
-    still be on it (see :func:`_near_walls`): ``wall_snap_m`` for a vertex at the range limit away from
-    its own view's walls, unbounded for the others. Where its own view saw a wall leave the range
+    still be on it (see :func:`_near_walls`): ``wall_snap_m`` for a vertex at the range limit
+    away from its own view's walls, unbounded for the others. Where its own view saw a wall leave the range
     beside it, the vertex is that wall's end in its view, and a neighbour's view of the wall may
     end as near (session 40's wider snap); in a door seen past its jamb, no wall of its own is by it."""
     out = np.full(indices.size, math.inf)
