@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from companion.argtypes import number
 from sitl.map_generator import write_generated_map
-from sitl.runner import run_exploration
+from sitl.runner import FINAL_COVERAGE_TOLERANCE, run_exploration
 from sitl.world import load_world
 
 
@@ -34,6 +34,14 @@ def _write(out: Path, runs: list[dict[str, Any]]) -> None:
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_text(json.dumps(runs, indent=2) + "\n")
     tmp.replace(out)
+
+
+def _searching_pct(runs: list[dict[str, Any]], planner: str) -> float:
+    """Of a planner's flight time in these runs, the share flown after coverage reached (within
+    :data:`~sitl.runner.FINAL_COVERAGE_TOLERANCE`) the value it ended at: search that found nothing."""
+    total = sum(r[planner]["exploration_time_s"] for r in runs)
+    after = sum(r[planner]["exploration_time_s"] - r[planner]["time_to_final_coverage_s"] for r in runs)
+    return 100.0 * after / total if total > 0.0 else 0.0
 
 
 def main() -> int:
@@ -99,6 +107,7 @@ def main() -> int:
         "complete",
         "time ratio median",
         "t99 ratio median",
+        "search after coverage [%] (grid)",
         "step p99 max [ms]",
     ):
         table.add_column(col)
@@ -115,9 +124,15 @@ def main() -> int:
             f"{sum(r['polygon']['termination'] == 'complete' for r in rs)}/{len(rs)}",
             f"{statistics.median(ratios):.2f} ({len(ratios)})" if ratios else "n/a",
             f"{statistics.median(t99):.2f}" if t99 else "-",
+            f"{_searching_pct(rs, 'polygon'):.1f} ({_searching_pct(rs, 'grid'):.1f})",
             f"{max(r['polygon']['step_ms']['p99'] for r in rs):.1f}",
         )
     console.print(table)
+    console.print(
+        f"search after coverage: {_searching_pct(runs, 'polygon'):.1f} % of the polygon planner's time, "
+        f"{_searching_pct(runs, 'grid'):.1f} % of the grid's (flown after coverage came within "
+        f"{FINAL_COVERAGE_TOLERANCE} of where the run ended)"
+    )
     console.print(
         "time ratios: polygon / grid, only against grid runs that explored the map (complete, coverage"
         " >= 0.99, no collision); their count in brackets, n/a when there were none"

@@ -290,6 +290,7 @@ class Service:
             "coverage": None,  # ground truth is the simulator's (sitl run --report)
             "exploration_time_s": round(elapsed, 3),
             "time_to_99_s": None,
+            "time_to_final_coverage_s": None,
             "path_length_m": round(self.path_length_m, 3),
             "collisions": None,
             "termination": self.termination,

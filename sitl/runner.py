@@ -31,6 +31,9 @@ from sitl.simulation import SensorFrame, SimParams, Simulation
 from sitl.world import World
 
 PLANNERS = ("polygon", "grid")
+# Coverage this close to where a run ended counts as reached (0.05 % of the map): what a run flies
+# after ``time_to_final_coverage_s`` is search that found nothing (docs/benchmarks.md, session 64).
+FINAL_COVERAGE_TOLERANCE = 0.0005
 
 
 class Policy(Protocol):
@@ -180,6 +183,7 @@ def run_exploration(
     setpoint: Setpoint | None = Setpoint(start.x_m, start.y_m, start.yaw_rad)
     termination = "timeout"
     time_to_99: float | None = None
+    gains: list[tuple[float, float]] = []  # (stamp, coverage) at every frame that saw new cells
     next_sample = 0.0
     while True:
         coverage.mark_rays(frame.true_pose, frame.scan.bearings_rad, frame.scan.ranges_m)
@@ -188,6 +192,8 @@ def run_exploration(
         cov = coverage.coverage
         if time_to_99 is None and cov >= 0.99:
             time_to_99 = frame.stamp_s
+        if not gains or cov > gains[-1][1]:
+            gains.append((frame.stamp_s, cov))
         if frame.stamp_s >= next_sample:
             trace.coverage_over_time.append((frame.stamp_s, cov))
             next_sample += 1.0
@@ -229,6 +235,7 @@ def run_exploration(
         "coverage": round(coverage.coverage, 5),
         "exploration_time_s": round(frame.stamp_s, 3),
         "time_to_99_s": None if time_to_99 is None else round(time_to_99, 3),
+        "time_to_final_coverage_s": round(_time_to_final(gains, coverage.coverage), 3),
         "path_length_m": round(sim.path_length_m, 3),
         "collisions": sim.collisions,
         "input_latency_s": input_latency_s,
@@ -242,3 +249,9 @@ def run_exploration(
         },
     }
     return trace
+
+
+def _time_to_final(gains: list[tuple[float, float]], final: float) -> float:
+    """When coverage first came within ``FINAL_COVERAGE_TOLERANCE`` of its final value (coverage
+    never falls, so ``gains`` rises)."""
+    return next((t for t, c in gains if c >= final - FINAL_COVERAGE_TOLERANCE), 0.0)

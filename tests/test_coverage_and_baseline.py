@@ -8,7 +8,7 @@ from companion.core.messages import DepthScan, Odometry, Setpoint
 from companion.core.planner import PlannerParams
 from sitl.coverage import CoverageGrid
 from sitl.grid_explorer import FREE, OCCUPIED, UNKNOWN, GridExplorer
-from sitl.runner import GridPolicy, run_exploration
+from sitl.runner import GridPolicy, _time_to_final, run_exploration
 from sitl.simulation import SensorFrame, SimParams, Simulation
 from sitl.world import load_world
 from tests.conftest import square, write_map
@@ -151,3 +151,12 @@ def test_grid_baseline_lead_remembers_a_wall_turned_out_of_view(small_room):
     looked = Pose2(2.0, 3.0, 0.0)
     sp = policy.step(SensorFrame(0.2, Odometry(0.2, looked), nothing, None, looked))
     assert sp is not None and sp.x_m > 2.8
+
+
+def test_the_time_to_final_coverage_is_when_coverage_came_within_the_tolerance_of_its_end():
+    """What a run flies after coverage came within 0.05 % of where it ended is search that found
+    nothing (the benchmark's "search after coverage"): its start is the first frame that close."""
+    gains = [(0.0, 0.5), (10.0, 0.9), (20.0, 0.9996), (30.0, 1.0)]
+    assert _time_to_final(gains, 1.0) == 20.0
+    assert _time_to_final(gains, 0.9) == 10.0
+    assert _time_to_final(gains[:1], 0.5) == 0.0
