@@ -205,9 +205,9 @@ _CORNER_STRIDE = 8
 
 def _any_corner_inside(shape: shapely.Polygon, poses: FloatArray, corners: list[FloatArray]) -> NDArray[np.bool_]:
     """For each view (its polygon's corners, moved by its pose: rows of x, y, yaw): whether any
-    corner lies inside ``shape``. Every eighth corner is asked first, and only the views none of
-    those settles are asked for all their corners: most neighbours overlap a lot, and the
-    containment test of every corner was a tenth of the dearest steps (apartment seed 1)."""
+    corner lies inside ``shape``. Every ``_CORNER_STRIDE``-th corner is asked first, and only the
+    views none of those settles are asked for all their corners: most neighbours overlap a lot,
+    and the containment test of every corner was a tenth of the dearest steps (apartment seed 1)."""
     inside = _any_inside(shape, poses, [c[::_CORNER_STRIDE] for c in corners])
     rest = np.flatnonzero(~inside)
     if rest.size:
@@ -889,9 +889,10 @@ def _loose_limit(kf: Keyframe, indices: NDArray[np.intp]) -> NDArray[np.bool_]:
 def _past_end_m(kf: Keyframe, indices: NDArray[np.intp], p: MapParams) -> FloatArray:
     """How far from a wall's end, where they lie past it, each of these vertices may lie and
     still be on it (see :func:`_near_walls`): ``wall_snap_m`` for a vertex at the range limit
-    away from its own view's walls, unbounded for the others. Where its own view saw a wall leave the range
-    beside it, the vertex is that wall's end in its view, and a neighbour's view of the wall may
-    end as near (session 40's wider snap); in a door seen past its jamb, no wall of its own is by it."""
+    away from its own view's walls, unbounded for the others. Where its own view saw a wall
+    leave the range beside it, the vertex is that wall's end in its view, and a neighbour's view
+    of the wall may end as near (session 40's wider snap); in a door seen past its jamb, no wall
+    of its own is by it."""
     out = np.full(indices.size, math.inf)
     limit = kf.polygon.at_range_limit[indices]
     if not limit.any():
