@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -713,3 +714,12 @@ def test_a_wall_runs_on_along_the_edges_joined_to_it_and_no_farther():
     )
     assert _wall_runs(walls).tolist() == [[0.0, 2.5], [1.0, 0.5], [3.0, 0.0], [0.0, 0.0]]
     assert _wall_runs(np.zeros((0, 2, 2))).shape == (0, 2)
+
+
+def test_a_views_polygons_are_prepared_once_for_the_point_tests_it_answers():
+    m = LocalMap()
+    a = add_pose(m, Pose2(0, 0, 0), None)
+    b = add_pose(m, Pose2(1.0, 0, 0.2), a)
+    view = m.view(b[0])
+    assert len(view.shapes) == 2
+    assert shapely.is_prepared(view.shapes).all()

@@ -403,6 +403,9 @@ class LocalMap:
         bad = ~shapely.is_valid(shapes)
         if bad.any():
             shapes[bad] = shapely.make_valid(shapes[bad])
+        # Prepared once here: a view's polygons answer many point tests (closing, the planner's
+        # checks), and an unprepared polygon is prepared again for each point it is asked about.
+        shapely.prepare(shapes)
         walls_xy = apply_grouped(frames, [kf.walls.reshape(-1, 2) for kf in kfs]).reshape(-1, 2, 2)
         obstacles = _segments_geometry(walls_xy)
         shapely.prepare(obstacles)
