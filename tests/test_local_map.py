@@ -717,6 +717,8 @@ def test_a_wall_runs_on_along_the_edges_joined_to_it_and_no_farther():
 
 
 def test_a_views_polygons_are_prepared_once_for_the_point_tests_it_answers():
+    """Unprepared, each point test of a view prepared its polygon again (x0.95-0.97 of all step
+    time when prepared once, the same answers)."""
     m = LocalMap()
     a = add_pose(m, Pose2(0, 0, 0), None)
     b = add_pose(m, Pose2(1.0, 0, 0.2), a)
